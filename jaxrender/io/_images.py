@@ -1,0 +1,145 @@
+"""EXR (OpenEXR) and PNG (scikit-image) files. numpy in, numpy out: this is the I/O edge."""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ._atomic import atomic_path
+from ._color import linear_to_srgb, srgb_to_linear
+from ._errors import InputError
+
+_EXR_RGB = ("R", "G", "B")
+
+
+def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """All channels of an EXR file as float32 `H W` arrays, keyed by channel name."""
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such file")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as exr:
+            return {name: np.asarray(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
+    except Exception as error:  # OpenEXR raises bare RuntimeErrors for corrupt files
+        raise InputError(path, f"not a readable EXR file ({error})") from None
+
+
+def write_exr(path: str | os.PathLike, image: np.ndarray | dict[str, np.ndarray]) -> Path:
+    """Write float32 channels, atomically. `image` is `H W`, `H W 3` (R, G, B),
+    `H W C` (channels C0..), or a dict name -> `H W` array."""
+    import OpenEXR
+
+    if isinstance(image, dict):
+        channels = {name: np.ascontiguousarray(np.asarray(v, dtype=np.float32)) for name, v in image.items()}
+    else:
+        array = np.asarray(image, dtype=np.float32)
+        if array.ndim == 2:
+            channels = {"Y": array}
+        elif array.ndim == 3 and array.shape[2] == 3:
+            channels = {c: array[..., i] for i, c in enumerate(_EXR_RGB)}
+        elif array.ndim == 3 and array.shape[2] == 4:
+            channels = {c: array[..., i] for i, c in enumerate(("R", "G", "B", "A"))}
+        elif array.ndim == 3:
+            channels = {f"C{i}": array[..., i] for i in range(array.shape[2])}
+        else:
+            raise ValueError(f"cannot write an array of shape {array.shape} as EXR")
+        channels = {k: np.ascontiguousarray(v) for k, v in channels.items()}
+    shapes = {v.shape for v in channels.values()}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
+        raise ValueError(f"EXR channels must share one 2-D shape, got {shapes}")
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path) as tmp:
+        with OpenEXR.File(header, channels) as exr:
+            exr.write(str(tmp))
+    return Path(path)
+
+
+def read_image(path: str | os.PathLike, *, srgb: bool = True) -> np.ndarray:
+    """A PNG or EXR image as linear float32 `H W C` (C = 1, 3 or 4).
+
+    PNG values are scaled by the maximum of their integer type and, with `srgb`,
+    decoded from sRGB (alpha stays linear). EXR files are linear: R, G, B (and A) when present,
+    else Y, else every channel in name order.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such file")
+    suffix = path.suffix.lower()
+    if suffix == ".exr":
+        channels = read_exr(path)
+        if all(c in channels for c in _EXR_RGB):
+            names = list(_EXR_RGB) + (["A"] if "A" in channels else [])
+        elif "Y" in channels:
+            names = ["Y"]
+        else:
+            names = sorted(channels)
+        return np.stack([channels[n] for n in names], axis=-1)
+    if suffix not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
+        raise InputError(path, f"unsupported image type {suffix!r} (use PNG or EXR)")
+    import skimage.io
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            raw = skimage.io.imread(str(path))
+    except Exception as error:
+        raise InputError(path, f"not a readable image ({type(error).__name__}: {error})") from None
+    if raw.dtype == np.uint8:
+        image = raw.astype(np.float32) / 255.0
+    elif raw.dtype == np.uint16:
+        image = raw.astype(np.float32) / 65535.0
+    elif raw.dtype == bool:
+        image = raw.astype(np.float32)
+    else:
+        raise InputError(path, f"unsupported pixel type {raw.dtype}")
+    if image.ndim == 2:
+        image = image[..., None]
+    if srgb:
+        color = min(image.shape[2], 3)
+        image = image.copy()
+        image[..., :color] = np.asarray(srgb_to_linear(image[..., :color]))
+    return image
+
+
+def write_png(path: str | os.PathLike, image: np.ndarray, *, srgb: bool = True, bits: int = 8) -> Path:
+    """Write display values in [0, 1] (`H W`, `H W 1`, `H W 3`, `H W 4`) as an 8- or 16-bit PNG.
+
+    With `srgb`, linear values are sRGB-encoded first (pass `srgb=False` for values that are
+    already display-encoded, e.g. the output of `tonemap`, or for data such as masks).
+    """
+    import skimage.io
+
+    array = np.asarray(image, dtype=np.float32)
+    if array.ndim == 3 and array.shape[2] == 1:
+        array = array[..., 0]
+    if srgb:
+        color = array if array.ndim == 2 else array[..., :3]
+        encoded = np.asarray(linear_to_srgb(color))
+        array = encoded if array.ndim == 2 else np.concatenate([encoded, array[..., 3:]], axis=-1)
+    array = np.nan_to_num(np.clip(array, 0.0, 1.0))
+    if bits == 8:
+        out = np.round(array * 255.0).astype(np.uint8)
+    elif bits == 16:
+        out = np.round(array * 65535.0).astype(np.uint16)
+    else:
+        raise ValueError("PNG bits must be 8 or 16")
+    with atomic_path(Path(path).with_suffix(".png") if Path(path).suffix == "" else path) as tmp:
+        skimage.io.imsave(str(tmp), out, check_contrast=False)
+    return Path(path)
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray, *, exposure: float = 1.0) -> Path:
+    """Write linear radiance: EXR as is, PNG tone-mapped (`tonemap`, ACES) for viewing."""
+    from ._color import tonemap
+
+    path = Path(path)
+    if path.suffix.lower() == ".exr":
+        return write_exr(path, image)
+    if path.suffix.lower() == ".png":
+        return write_png(path, np.asarray(tonemap(np.asarray(image), exposure=exposure)), srgb=False)
+    raise InputError(path, "output must end in .exr or .png")

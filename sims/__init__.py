@@ -1,0 +1,1 @@
+"""Simulations that feed the renderer: ripple and dune automata, sand dust, fire, cloth."""
