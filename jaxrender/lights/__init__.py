@@ -1,2 +1,12 @@
 """Light sources: spot lights (cone, falloff, projected light map), the sun, environment maps
 with importance sampling. One private module per kind; public names re-exported here."""
+
+from ._envmap import EnvMap as EnvMap
+from ._envmap import EnvSamples as EnvSamples
+from ._envmap import env_pdf as env_pdf
+from ._envmap import env_radiance as env_radiance
+from ._envmap import env_texel_solid_angles as env_texel_solid_angles
+from ._envmap import envmap_direction as envmap_direction
+from ._envmap import envmap_uv as envmap_uv
+from ._envmap import load_envmap as load_envmap
+from ._envmap import sample_envmap as sample_envmap
