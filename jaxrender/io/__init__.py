@@ -12,3 +12,13 @@ from ._images import read_image as read_image
 from ._images import write_exr as write_exr
 from ._images import write_image as write_image
 from ._images import write_png as write_png
+from ._btf import BTF_FORMAT as BTF_FORMAT
+from ._btf import BTF_VERSION as BTF_VERSION
+from ._btf import LEVEL0_CHANNELS as LEVEL0_CHANNELS
+from ._btf import LOBE_CHANNELS as LOBE_CHANNELS
+from ._btf import btf_level_name as btf_level_name
+from ._btf import complete_level as complete_level
+from ._btf import read_btf as read_btf
+from ._btf import write_btf as write_btf
+from ._btf import write_btf_levels as write_btf_levels
+from ._btf import write_btf_previews as write_btf_previews

@@ -1,0 +1,270 @@
+"""Capture directories (design.md, "Capture directory for fitting"): loading and validation.
+
+`load_capture` checks everything before any work starts (the manifest, every field, every image:
+existence, readability, pixel type, size, NaN/Inf in EXR) and raises one `CaptureError` listing
+every problem found, one line each, naming the file. The command lines print it and exit with 2.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from jaxrender.io import InputError, linear_to_srgb, read_image
+
+__all__ = ["CAPTURE_FORMAT", "CAPTURE_VERSION", "CaptureError", "Capture", "load_capture", "MAX_IMAGE_PROBLEMS"]
+
+CAPTURE_FORMAT = "jaxrender-capture"
+CAPTURE_VERSION = 1
+MAX_IMAGE_PROBLEMS = 200  # beyond this many image problems the rest are summarised in one line
+
+
+class CaptureError(InputError):
+    """Every problem of a capture directory, one `PATH: problem` line each (str joins them)."""
+
+    def __init__(self, problems: list[str]):
+        self.problems = list(problems)
+        super().__init__(None, "\n".join(self.problems))
+
+
+@dataclasses.dataclass(frozen=True)
+class Capture:
+    """A validated capture. Image paths are the capture directory joined with the manifest's;
+    directions are unit vectors in the sample frame (x = image columns, y = rows toward the top,
+    z = toward the camera)."""
+
+    root: Path
+    size: tuple[int, int]
+    response: str  # "linear" or "srgb": how PNG code values are linearised
+    exposures_s: tuple[float, ...]
+    view_angles: tuple[float, float]  # (theta_deg, phi_deg)
+    view_dir: np.ndarray  # 3
+    white_reflectance: np.ndarray  # 3 (a scalar in the manifest is repeated)
+    white_images: tuple[Path, ...]  # one per exposure
+    light_angles: np.ndarray  # L 2 (theta_deg, phi_deg)
+    light_dirs: np.ndarray  # L 3
+    light_images: tuple[tuple[Path, ...], ...]  # L x E
+    manifest: dict = dataclasses.field(repr=False, default_factory=dict)
+
+    @property
+    def n_lights(self) -> int:
+        return len(self.light_images)
+
+    def read_codes(self, path: str | os.PathLike) -> np.ndarray:
+        """Raw code values of one image as float32 `H W 3`, normalised to full scale.
+
+        PNG: integer codes / (2^8 - 1 or 2^16 - 1), NOT linearised (saturation is judged on the
+        raw code; `fitting.hdr` linearises by `response`). EXR: its linear values, sRGB-encoded
+        when the capture's response is "srgb" so that one response applies to all images.
+        Gray images are repeated to RGB, alpha is dropped.
+        """
+        path = Path(path)
+        if path.suffix.lower() == ".exr":
+            image = read_image(path)
+            if self.response == "srgb":
+                image = np.asarray(linear_to_srgb(image), np.float32)
+        else:
+            image = read_image(path, srgb=False)
+        return _to_rgb(image)
+
+
+def _to_rgb(image: np.ndarray) -> np.ndarray:
+    if image.shape[2] == 1:
+        image = np.repeat(image, 3, axis=2)
+    return np.ascontiguousarray(image[..., :3], dtype=np.float32)
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _direction(theta_deg: float, phi_deg: float) -> np.ndarray:
+    t, p = math.radians(theta_deg), math.radians(phi_deg)
+    return np.array([math.sin(t) * math.cos(p), math.sin(t) * math.sin(p), math.cos(t)])
+
+
+def _check_image(path: Path, size: tuple[int, int] | None, check_pixels: bool) -> list[str]:
+    """Problems of one image file (empty when fine)."""
+    if not path.exists():
+        return [f"{path}: missing image"]
+    if not path.is_file():
+        return [f"{path}: not a file"]
+    suffix = path.suffix.lower()
+    if suffix not in (".png", ".exr"):
+        return [f"{path}: unsupported image type {suffix or '(none)'!r} (use 8/16-bit PNG or EXR)"]
+    problems = []
+    try:
+        if suffix == ".exr":
+            from jaxrender.io import read_exr
+
+            channels = read_exr(path)
+            if not (all(c in channels for c in "RGB") or "Y" in channels):
+                return [f"{path}: EXR has no R, G, B or Y channels (has {sorted(channels)})"]
+            names = ["R", "G", "B"] if all(c in channels for c in "RGB") else ["Y"]
+            image = np.stack([channels[n] for n in names], axis=-1)
+            if check_pixels:
+                bad = ~np.isfinite(image)
+                if bad.any():
+                    kinds = ", ".join(k for k, m in (("NaN", np.isnan(image)), ("Inf", np.isinf(image))) if m.any())
+                    problems.append(f"{path}: {int(bad.sum())} non-finite values ({kinds})")
+        else:
+            import skimage.io
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                raw = skimage.io.imread(str(path))
+            if raw.dtype not in (np.uint8, np.uint16):
+                return [f"{path}: PNG pixel type {raw.dtype} (use 8- or 16-bit)"]
+            image = raw if raw.ndim == 3 else raw[..., None]
+            if image.shape[2] not in (1, 2, 3, 4) or image.shape[2] == 2:
+                return [f"{path}: {image.shape[2]} channels (use gray, RGB or RGBA)"]
+    except InputError as error:
+        return [str(error)]
+    except Exception as error:  # decoders raise many types for corrupt files
+        return [f"{path}: not a readable image ({type(error).__name__}: {error})"]
+    if size is not None and tuple(image.shape[:2]) != tuple(size):
+        problems.append(f"{path}: size {image.shape[0]}x{image.shape[1]} differs from capture.json's size "
+                        f"{size[0]}x{size[1]} (H x W)")
+    return problems
+
+
+def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, workers: int = 4) -> Capture:
+    """Load and validate a capture directory; raise `CaptureError` listing every problem.
+
+    Checked: capture.json (present, JSON, format "jaxrender-capture", version 1), every field and
+    its type (`size`, `response`, `exposures_s`, `view`, `white`, `lights`), light and view
+    directions strictly above the horizon (theta in [0, 90)), one image per exposure for the white
+    board and for every light, and every image: present, readable (decoded in full when
+    `check_pixels`), 8/16-bit PNG or EXR, of the manifest's size, and (EXR) free of NaN/Inf.
+    """
+    root = Path(capture_dir)
+    manifest_path = root / "capture.json"
+    if not root.is_dir():
+        raise CaptureError([f"{root}: no such capture directory"])
+    if not manifest_path.is_file():
+        raise CaptureError([f"{manifest_path}: missing (a capture directory needs capture.json)"])
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except (OSError, UnicodeDecodeError) as error:
+        raise CaptureError([f"{manifest_path}: unreadable ({error})"]) from None
+    except json.JSONDecodeError as error:
+        raise CaptureError([f"{manifest_path}: not valid JSON ({error})"]) from None
+    if not isinstance(manifest, dict):
+        raise CaptureError([f"{manifest_path}: must be a JSON object"])
+
+    problems: list[str] = []
+
+    def bad(field: str, problem: str) -> None:
+        problems.append(f"{manifest_path}: {field}: {problem}")
+
+    if manifest.get("format") != CAPTURE_FORMAT:
+        bad("format", f"{manifest.get('format')!r} is not {CAPTURE_FORMAT!r}")
+    if manifest.get("version") != CAPTURE_VERSION:
+        bad("version", f"unknown version {manifest.get('version')!r} (this reader knows {CAPTURE_VERSION})")
+
+    size = manifest.get("size")
+    if not (isinstance(size, list) and len(size) == 2 and all(isinstance(s, int) and not isinstance(s, bool)
+                                                               and s > 0 for s in size)):
+        bad("size", "missing or not [H, W] with positive integers" if size is None else f"{size!r} is not [H, W] with positive integers")
+        size = None
+    else:
+        size = (int(size[0]), int(size[1]))
+
+    response = manifest.get("response")
+    if response not in ("linear", "srgb"):
+        bad("response", "missing" if response is None else f"{response!r} is not 'linear' or 'srgb'")
+
+    exposures = manifest.get("exposures_s")
+    n_exp = None
+    if not (isinstance(exposures, list) and exposures and all(_is_number(e) and e > 0 for e in exposures)):
+        bad("exposures_s", "missing" if exposures is None else "must be a non-empty list of positive numbers (seconds)")
+        exposures = None
+    else:
+        n_exp = len(exposures)
+        if len(set(exposures)) != n_exp:
+            bad("exposures_s", "exposure times must be distinct")
+
+    def check_angles(field: str, entry) -> tuple[float, float] | None:
+        if not isinstance(entry, dict):
+            bad(field, "missing" if entry is None else "must be an object with theta_deg and phi_deg")
+            return None
+        theta, phi = entry.get("theta_deg"), entry.get("phi_deg")
+        ok = True
+        if not _is_number(theta):
+            bad(f"{field}.theta_deg", "missing" if theta is None else f"{theta!r} is not a finite number")
+            ok = False
+        elif theta >= 90:
+            bad(f"{field}.theta_deg", f"{theta} is at or below the horizon (must be < 90)")
+            ok = False
+        elif theta < 0:
+            bad(f"{field}.theta_deg", f"{theta} is negative (must be in [0, 90))")
+            ok = False
+        if not _is_number(phi):
+            bad(f"{field}.phi_deg", "missing" if phi is None else f"{phi!r} is not a finite number")
+            ok = False
+        return (float(theta), float(phi)) if ok else None
+
+    def check_images(field: str, images) -> list[Path] | None:
+        if not (isinstance(images, list) and all(isinstance(p, str) and p for p in images)):
+            bad(field, "missing" if images is None else "must be a list of image paths (strings)")
+            return None
+        if n_exp is not None and len(images) != n_exp:
+            bad(field, f"{len(images)} images for {n_exp} exposures in exposures_s")
+        return [root / p for p in images]
+
+    view = check_angles("view", manifest.get("view"))
+
+    white = manifest.get("white")
+    white_refl, white_images = None, None
+    if not isinstance(white, dict):
+        bad("white", "missing" if white is None else "must be an object with reflectance and images")
+    else:
+        r = white.get("reflectance")
+        if _is_number(r) and r > 0:
+            white_refl = np.full(3, float(r))
+        elif isinstance(r, list) and len(r) == 3 and all(_is_number(x) and x > 0 for x in r):
+            white_refl = np.asarray(r, float)
+        else:
+            bad("white.reflectance", "missing" if r is None else f"{r!r} is not a positive number or RGB triple")
+        white_images = check_images("white.images", white.get("images"))
+
+    lights = manifest.get("lights")
+    light_angles, light_images = [], []
+    if not (isinstance(lights, list) and lights):
+        bad("lights", "missing" if lights is None else "must be a non-empty list of lights")
+        lights = []
+    for i, light in enumerate(lights):
+        field = f"lights[{i}]"
+        if not isinstance(light, dict):
+            bad(field, "must be an object with theta_deg, phi_deg and images")
+            continue
+        light_angles.append(check_angles(field, light))
+        light_images.append(check_images(f"{field}.images", light.get("images")))
+
+    # Every image, decoded once (threads: the decoders release the GIL).
+    paths = list(white_images or []) + [p for images in light_images if images for p in images]
+    unique = list(dict.fromkeys(paths))
+    with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        results = list(pool.map(lambda p: _check_image(p, size, check_pixels), unique))
+    image_problems = [line for result in results for line in result]
+    if len(image_problems) > MAX_IMAGE_PROBLEMS:
+        extra = len(image_problems) - MAX_IMAGE_PROBLEMS
+        image_problems = image_problems[:MAX_IMAGE_PROBLEMS] + [f"{root}: ... and {extra} more image problems"]
+    problems += image_problems
+    if problems:
+        raise CaptureError(problems)
+
+    angles = np.asarray(light_angles, float)
+    return Capture(
+        root=root.resolve(), size=size, response=response, exposures_s=tuple(float(e) for e in exposures),
+        view_angles=view, view_dir=_direction(*view), white_reflectance=white_refl,
+        white_images=tuple(white_images), light_angles=angles,
+        light_dirs=np.stack([_direction(t, p) for t, p in angles]),
+        light_images=tuple(tuple(images) for images in light_images), manifest=manifest)

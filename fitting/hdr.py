@@ -1,0 +1,212 @@
+"""HDR merge of exposure brackets and the white-board normalisation (design.md, "Capture directory").
+
+A code value c (raw, normalised to [0, 1] of full scale) of exposure t is linearised by the
+capture's response, divided by t and averaged over the bracket with the weight
+
+    w(c, t) = hat(c) * t,   hat(c) = clip(min(c - DARK_CODE, SATURATION_CODE - c) / HAT_RAMP, 0, 1),
+
+zero for saturated (c >= 0.98) and near-black (c <= 2/255) samples. The factor t makes the
+average approximately inverse-variance under shot noise (the variance of c/t falls as 1/t).
+A sample saturated even in the shortest exposure, or dark even in the longest, has no valid
+estimate: it is flagged, and its radiance is only a bound (c/t of that exposure), never used.
+Observation of a texel under one light = merged radiance / merged white-board radiance at normal
+incidence (per texel and channel) * board reflectance.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from tqdm.auto import tqdm
+
+from jaxrender.io import srgb_to_linear
+
+__all__ = ["SATURATION_CODE", "DARK_CODE", "HAT_RAMP", "RESPONSES", "Observations", "linearize",
+           "exposure_weights", "merge_exposures", "observe", "merge_capture"]
+
+SATURATION_CODE = 0.98  # design.md: code values >= 0.98 of full scale get zero weight
+DARK_CODE = 2.0 / 255.0  # design.md: code values <= 2/255 get zero weight
+HAT_RAMP = 0.05  # the hat weight reaches 1 this far (in code units) inside the valid range
+RESPONSES = ("linear", "srgb")
+
+
+class Observations(eqx.Module):
+    """Per-texel multi-light observations of a capture, ready for the fit.
+
+    `ratio[h, w, l]` is the observed reflectance R (radiance / white-board radiance at normal
+    incidence * board reflectance) under light `light_dirs[l]`, seen from `view_dir`;
+    `weight[h, w, l]` is 1 where every channel of it is a valid merge, 0 where a channel was
+    saturated even in the shortest exposure, dark even in the longest, or the white board was
+    invalid at that texel. `n_valid`, `n_saturated`, `n_dark` count lights per texel (a light
+    with both a saturated and a dark channel counts in both).
+    """
+
+    ratio: Float[Array, "H W L 3"]
+    weight: Float[Array, "H W L"]
+    light_dirs: Float[Array, "L 3"]
+    view_dir: Float[Array, "3"]
+    n_valid: Int[Array, "H W"]
+    n_saturated: Int[Array, "H W"]
+    n_dark: Int[Array, "H W"]
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return tuple(self.weight.shape[:2])
+
+    @property
+    def n_lights(self) -> int:
+        return int(self.light_dirs.shape[0])
+
+
+def linearize(codes: Float[ArrayLike, "..."], response: str) -> Float[Array, "..."]:
+    """Raw normalised code values -> linear values (relative to full scale)."""
+    if response not in RESPONSES:
+        raise ValueError(f"unknown response {response!r}: use one of {RESPONSES}")
+    codes = jnp.asarray(codes)
+    return codes if response == "linear" else srgb_to_linear(codes).astype(codes.dtype)
+
+
+def _expand(exposures: Array, ndim: int) -> Array:
+    """`E` -> `E 1 ... 1` with `ndim` axes (explicit: rank promotion is an error in the tests)."""
+    return jnp.reshape(exposures, exposures.shape + (1,) * (ndim - 1))
+
+
+def exposure_weights(codes: Float[ArrayLike, "E ..."], exposures_s: Float[ArrayLike, "E"]) -> Float[Array, "E ..."]:
+    """w(c, t) = hat(c) * t (module docstring); 0 at and beyond the saturation and dark codes."""
+    codes = jnp.asarray(codes)
+    t = _expand(jnp.asarray(exposures_s, dtype=codes.dtype), codes.ndim)
+    hat = jnp.clip(jnp.minimum(codes - DARK_CODE, SATURATION_CODE - codes) / HAT_RAMP, 0.0, 1.0)
+    valid = (codes > DARK_CODE) & (codes < SATURATION_CODE)
+    return jnp.where(valid, hat, 0.0) * t
+
+
+@functools.partial(jax.jit, static_argnames=("response",))
+def merge_exposures(codes: Float[ArrayLike, "E H W 3"], exposures_s: Float[ArrayLike, "E"],
+                    response: str) -> tuple[Float[Array, "H W 3"], Bool[Array, "H W 3"], Bool[Array, "H W 3"]]:
+    """Merge an exposure bracket into linear radiance (code units of full scale per second).
+
+    `codes`: raw normalised code values `E ...` (any trailing shape; PNG codes / full scale, EXR
+    values as they are); `exposures_s` in seconds, in any order. Returns (radiance, saturated,
+    dark): `saturated` where even the shortest exposure is saturated (or no exposure is usable),
+    `dark` where even the longest is near black; there the radiance is the bound c / t of that
+    exposure and must not be used as a measurement.
+    """
+    codes = jnp.asarray(codes)
+    exposures = jnp.asarray(exposures_s, dtype=codes.dtype)
+    t = _expand(exposures, codes.ndim)
+    linear = linearize(codes, response)
+    w = exposure_weights(codes, exposures)
+    total = jnp.sum(w, axis=0)
+    merged = jnp.sum(w * linear / t, axis=0) / jnp.where(total > 0, total, 1.0)
+    shortest, longest = jnp.argmin(exposures), jnp.argmax(exposures)
+    c_short, c_long = codes[shortest], codes[longest]
+    dark = c_long <= DARK_CODE
+    saturated = (c_short >= SATURATION_CODE) | ((total <= 0) & ~dark)
+    bound = jnp.where(saturated, linear[shortest] / exposures[shortest], linear[longest] / exposures[longest])
+    radiance = jnp.where(saturated | dark | (total <= 0), bound, merged)
+    return radiance, saturated, dark
+
+
+def observe(codes: Float[ArrayLike, "B E H W 3"], exposures_s: Float[ArrayLike, "E"],
+            white_codes: Float[ArrayLike, "E H W 3"], reflectance: Float[ArrayLike, "3"], *,
+            response: str) -> tuple[Float[Array, "H W B 3"], Bool[Array, "H W B"], Bool[Array, "H W B"], Bool[Array, "H W B"]]:
+    """Observations of a batch of B lights: (ratio, valid, any channel saturated, any dark), `H W B`
+    first (the layout of `Observations`). Jitted inside `_observe_jit`."""
+    return _observe_jit(jnp.asarray(codes), jnp.asarray(exposures_s), jnp.asarray(white_codes),
+                        jnp.asarray(reflectance), response=response)
+
+
+@functools.partial(jax.jit, static_argnames=("response",))
+def _observe_jit(codes, exposures_s, white_codes, reflectance, *, response):
+    dtype = codes.dtype
+    white, white_sat, white_dark = merge_exposures(white_codes.astype(dtype), exposures_s.astype(dtype), response)
+    white_ok = jnp.all(~white_sat & ~white_dark & (white > 0), axis=-1)  # H W
+    safe_white = jnp.where(white > 0, white, 1.0)
+    refl = jnp.reshape(reflectance.astype(dtype), (1, 1, 3))
+    merge = jax.vmap(merge_exposures, in_axes=(0, None, None))
+    radiance, saturated, dark = merge(codes, exposures_s.astype(dtype), response)  # B H W 3
+    ratio = radiance / safe_white[None] * refl[None]
+    sat_any, dark_any = jnp.any(saturated, axis=-1), jnp.any(dark, axis=-1)  # B H W
+    valid = ~sat_any & ~dark_any & white_ok[None]
+    ratio = jnp.where(valid[..., None], ratio, 0.0)
+    to_hwb = lambda x: jnp.moveaxis(x, 0, 2)  # noqa: E731
+    return to_hwb(ratio), to_hwb(valid), to_hwb(sat_any), to_hwb(dark_any)
+
+
+def _counts(valid: np.ndarray, saturated: np.ndarray, dark: np.ndarray) -> tuple[np.ndarray, ...]:
+    return tuple(np.sum(x, axis=-1, dtype=np.int32) for x in (valid, saturated, dark))
+
+
+def observations_from_batches(batches, *, size, n_lights, light_dirs, view_dir,
+                              dtype=np.float32, progress=None) -> Observations:
+    """Assemble `Observations` from an iterable of (light slice, ratio H W B 3, valid, saturated,
+    dark) batches (what `observe` returns), writing into preallocated numpy arrays."""
+    h, w = size
+    ratio = np.zeros((h, w, n_lights, 3), dtype)
+    valid = np.zeros((h, w, n_lights), bool)
+    saturated = np.zeros((h, w, n_lights), bool)
+    dark = np.zeros((h, w, n_lights), bool)
+    bar = tqdm(total=n_lights, unit="light", desc="merge", disable=None if progress is None else not progress)
+    for lights, r, v, s, d in batches:
+        count = lights.stop - lights.start
+        ratio[:, :, lights] = np.asarray(r)[:, :, :count]
+        valid[:, :, lights] = np.asarray(v)[:, :, :count]
+        saturated[:, :, lights] = np.asarray(s)[:, :, :count]
+        dark[:, :, lights] = np.asarray(d)[:, :, :count]
+        bar.update(count)
+    bar.close()
+    n_valid, n_saturated, n_dark = _counts(valid, saturated, dark)
+    return Observations(
+        ratio=jnp.asarray(ratio), weight=jnp.asarray(valid.astype(dtype)),
+        light_dirs=jnp.asarray(np.asarray(light_dirs, dtype)), view_dir=jnp.asarray(np.asarray(view_dir, dtype)),
+        n_valid=jnp.asarray(n_valid), n_saturated=jnp.asarray(n_saturated), n_dark=jnp.asarray(n_dark))
+
+
+def merge_capture(capture, *, batch: int = 64, progress: bool | None = None, workers: int = 4) -> Observations:
+    """Load and merge every bracket of a validated `Capture` (see `fitting.load_capture`).
+
+    Lights are streamed in batches of `batch` (images read by `workers` threads), each merged by
+    one jitted call; the last batch is padded so there is a single compilation. `progress`:
+    None = a tqdm bar on a terminal only, False = never, True = always.
+    """
+    h, w = capture.size
+    n_lights = len(capture.light_images)
+    batch = max(1, min(batch, n_lights))
+    exposures = np.asarray(capture.exposures_s, np.float32)
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers))
+    prefetch = concurrent.futures.ThreadPoolExecutor(max_workers=1)  # apart from `pool`: no deadlock
+    try:
+        white = np.stack(list(pool.map(capture.read_codes, capture.white_images)))
+
+        def read_batch(start):
+            paths = [p for images in capture.light_images[start:start + batch] for p in images]
+            codes = np.stack(list(pool.map(capture.read_codes, paths)))
+            codes = codes.reshape(-1, len(exposures), h, w, 3)
+            if codes.shape[0] < batch:  # pad: one shape, one compilation
+                pad = np.zeros((batch - codes.shape[0],) + codes.shape[1:], codes.dtype)
+                codes = np.concatenate([codes, pad])
+            return codes
+
+        def batches():
+            starts = list(range(0, n_lights, batch))
+            future = prefetch.submit(read_batch, starts[0])
+            for i, start in enumerate(starts):
+                codes = future.result()
+                if i + 1 < len(starts):  # read the next batch while this one merges
+                    future = prefetch.submit(read_batch, starts[i + 1])
+                out = observe(codes, exposures, white, np.asarray(capture.white_reflectance, np.float32),
+                              response=capture.response)
+                yield (slice(start, min(start + batch, n_lights)), *out)
+
+        return observations_from_batches(batches(), size=(h, w), n_lights=n_lights,
+                                         light_dirs=capture.light_dirs, view_dir=capture.view_dir,
+                                         progress=progress)
+    finally:
+        prefetch.shutdown(wait=True, cancel_futures=True)
+        pool.shutdown(wait=True, cancel_futures=True)
