@@ -9,7 +9,7 @@ from jaxtyping import Array, ArrayLike, Float
 def safe_norm(x: Float[ArrayLike, "... 3"], *, eps: float = 1e-12) -> Float[Array, "..."]:
     """Euclidean norm whose gradient at 0 is 0 instead of NaN."""
     x = jnp.asarray(x)
-    sq = jnp.sum(x * x, axis=-1)
+    sq = dot(x, x)
     positive = sq > eps * eps
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
 
@@ -28,7 +28,12 @@ def safe_div(a: ArrayLike, b: ArrayLike, *, eps: float = 1e-12) -> Array:
 
 
 def dot(a: Float[ArrayLike, "... 3"], b: Float[ArrayLike, "... 3"]) -> Float[Array, "..."]:
-    return jnp.sum(jnp.asarray(a) * jnp.asarray(b), axis=-1)
+    a, b = jnp.asarray(a), jnp.asarray(b)
+    if a.shape[-1:] == (3,) and b.shape[-1:] == (3,):
+        # Written out: XLA on CPU vectorizes this elementwise form, while a reduction over a
+        # minor axis of length 3 runs ~10-100x slower (measured on the BRDF and its Jacobian).
+        return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+    return jnp.sum(a * b, axis=-1)
 
 
 def outer(s: ArrayLike, v: Float[ArrayLike, "3"]) -> Array:
