@@ -12,11 +12,13 @@ noise in electrons, clipping at full well, an optional sRGB response and 8/16-bi
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import os
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -99,36 +101,34 @@ def stratified_light_subset(key: PRNGKeyArray, n: int) -> np.ndarray:
     return np.sort(np.concatenate(chosen))
 
 
-class Sensor:
-    """The simulated camera (static configuration, hashable for jit).
+class Sensor(eqx.Module):
+    """The simulated camera. The numbers are pytree leaves (changing them does not recompile);
+    `bits` and `response` are static.
 
     gain: linear code (fraction of full scale) per unit reflectance per second of exposure (62.5:
     the white board of reflectance 1 at half scale in 1/125 s); full_well, read_noise in electrons;
-    noise scales both noise terms (0: noiseless); bits: 8 or 16 (PNG), 0 (float, EXR); response:
-    "linear" or "srgb" (PNG only); vignette: illumination falloff toward the corners (1 - v r^2).
+    noise scales both noise terms (0: noiseless); vignette: illumination falloff toward the corners
+    (1 - vignette r^2, r = 1 at the corners; the white board removes it); bits: 8 or 16 (PNG),
+    0 (float, EXR: no quantization); response: "linear" or "srgb" (quantized PNG codes only).
     """
 
-    def __init__(self, *, gain: float = 62.5, full_well: float = 20000.0, read_noise: float = 10.0,
-                 noise: float = 1.0, bits: int = 8, response: str = "linear", vignette: float = 0.25):
-        if bits not in (0, 8, 16):
+    gain: float = 62.5
+    full_well: float = 20000.0
+    read_noise: float = 10.0
+    noise: float = 1.0
+    vignette: float = 0.25
+    bits: int = eqx.field(static=True, default=8)
+    response: str = eqx.field(static=True, default="linear")
+
+    def __check_init__(self):
+        if self.bits not in (0, 8, 16):
             raise ValueError("bits must be 8, 16 or 0 (float)")
-        if response not in ("linear", "srgb"):
-            raise ValueError(f"unknown response {response!r}")
-        self.gain, self.full_well, self.read_noise = float(gain), float(full_well), float(read_noise)
-        self.noise, self.bits, self.response, self.vignette = float(noise), int(bits), response, float(vignette)
+        if self.response not in ("linear", "srgb"):
+            raise ValueError(f"unknown response {self.response!r}")
 
-    def _key(self):
-        return (self.gain, self.full_well, self.read_noise, self.noise, self.bits, self.response, self.vignette)
-
-    def __hash__(self):
-        return hash(self._key())
-
-    def __eq__(self, other):
-        return isinstance(other, Sensor) and self._key() == other._key()
-
-    def __repr__(self):
-        return (f"Sensor(gain={self.gain}, full_well={self.full_well}, read_noise={self.read_noise}, "
-                f"noise={self.noise}, bits={self.bits}, response={self.response!r}, vignette={self.vignette})")
+    def replace(self, **changes) -> "Sensor":
+        """A copy with some settings changed."""
+        return dataclasses.replace(self, **changes)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -169,8 +169,13 @@ def _synth_maps(key: PRNGKeyArray, size: tuple[int, int], thread: int | None) ->
 
     # Colours: two silk hues, jitter per thread.
     hue = jax.random.uniform(k_col, (2,), dtype)
-    warp_rgb = 0.08 + 0.5 * jnp.clip(jnp.abs(jnp.stack([jnp.cos(2 * jnp.pi * (hue[0] + s)) for s in (0, 1 / 3, 2 / 3)])), 0, 1)
-    weft_rgb = 0.08 + 0.4 * jnp.clip(jnp.abs(jnp.stack([jnp.cos(2 * jnp.pi * (hue[1] + s)) for s in (0, 1 / 3, 2 / 3)])), 0, 1)
+    hue = hue.at[1].set(hue[0] + 0.35 + 0.3 * hue[1])  # weft hue well apart from the warp's
+
+    def silk_colour(h, value):
+        phases = jnp.asarray([0.0, 1 / 3, 2 / 3], dtype)
+        return 0.04 + value * (0.5 + 0.5 * jnp.cos(2 * jnp.pi * (h - phases))) ** 2
+
+    warp_rgb, weft_rgb = silk_colour(hue[0], 0.55), silk_colour(hue[1], 0.45)
     n_threads = max(h, w) // p + 2
     jitter = 1 + 0.12 * jax.random.uniform(k_jit, (2, n_threads, 3), dtype, -1.0, 1.0)
     warp_j, weft_j = jitter[0][cj], jitter[1][ci]  # H W 3
@@ -234,10 +239,10 @@ def _expose(key, radiance_rel, exposures, sensor: Sensor):
     dtype = radiance_rel.dtype
     t = jnp.reshape(jnp.asarray(exposures, dtype), (-1,) + (1,) * radiance_rel.ndim)
     linear = radiance_rel[None] * (sensor.gain * t)
-    k_shot, k_read = jax.random.split(key)
+    z = jax.random.normal(key, (2,) + linear.shape, dtype)  # one draw: shot and read noise
     electrons = jnp.maximum(linear, 0.0) * sensor.full_well
-    shot = jnp.sqrt(electrons) * jax.random.normal(k_shot, linear.shape, dtype)
-    read = sensor.read_noise * jax.random.normal(k_read, linear.shape, dtype)
+    shot = jnp.sqrt(electrons) * z[0]
+    read = sensor.read_noise * z[1]
     noisy = jnp.clip(linear + sensor.noise * (shot + read) / sensor.full_well, 0.0, 1.0)
     if sensor.bits == 0:
         return noisy
@@ -246,7 +251,7 @@ def _expose(key, radiance_rel, exposures, sensor: Sensor):
     return quantize(noisy, sensor.bits)
 
 
-@functools.partial(jax.jit, static_argnames=("sensor", "model"))
+@functools.partial(jax.jit, static_argnames=("model",))
 def synth_codes(key: PRNGKeyArray, texels: BTFTexel, light_dirs: Float[Array, "B 3"],
                 light_ids: Int[Array, "B"], view_dir: Float[Array, "3"], exposures: Float[Array, "E"],
                 *, sensor: Sensor, model: str = "reciprocal") -> Float[Array, "B E H W 3"]:
@@ -258,7 +263,7 @@ def synth_codes(key: PRNGKeyArray, texels: BTFTexel, light_dirs: Float[Array, "B
     return jax.vmap(_expose, in_axes=(0, 0, None, None))(keys, refl * v, exposures, sensor)
 
 
-@functools.partial(jax.jit, static_argnames=("sensor", "size"))
+@functools.partial(jax.jit, static_argnames=("size",))
 def synth_white_codes(key: PRNGKeyArray, reflectance_rgb: Float[Array, "3"], exposures: Float[Array, "E"], *,
                       size: tuple[int, int], sensor: Sensor) -> Float[Array, "E H W 3"]:
     """Codes of the white board lit at normal incidence (reflectance * falloff)."""
@@ -350,7 +355,8 @@ def synth_capture(out_dir: str | os.PathLike, *, key: PRNGKeyArray, size: tuple[
         bits, response = 0, "linear"
     elif bits not in (8, 16):
         raise InputError(None, "PNG captures are 8- or 16-bit")
-    sensor = sensor or Sensor(noise=noise, bits=bits, response=response)
+    # The file format decides bits and response; `sensor` supplies the rest (gain, noise, ...).
+    sensor = (sensor or Sensor(noise=noise)).replace(bits=bits, response=response)
     k_maps, k_lights, k_sel = jax.random.split(key, 3)
     if lights == "all":
         ids = np.arange(len(LIGHT_DIRECTIONS))
@@ -413,7 +419,7 @@ def synth_capture(out_dir: str | os.PathLike, *, key: PRNGKeyArray, size: tuple[
             "exposures_s": list(EXPOSURES_S), "view": {"theta_deg": 0.0, "phi_deg": 0.0},
             "white": {"reflectance": refl_list[0] if len(set(refl_list)) == 1 else refl_list, "images": white_names},
             "lights": light_entries,
-            "synth": {"model": model, "bits": bits, "noise": sensor.noise, "sensor": repr(sensor),
+            "synth": {"model": model, "bits": bits, "noise": sensor.noise, "sensor": {f.name: getattr(sensor, f.name) for f in dataclasses.fields(sensor)},
                       "light_indices": [int(i) for i in ids]},
         }
         with atomic_path(tmp / "capture.json") as path:
