@@ -10,3 +10,7 @@ from ._envmap import envmap_direction as envmap_direction
 from ._envmap import envmap_uv as envmap_uv
 from ._envmap import load_envmap as load_envmap
 from ._envmap import sample_envmap as sample_envmap
+
+from ._spot import SpotLight as SpotLight
+from ._spot import stack_spotlights as stack_spotlights
+from ._spot import unstack_spotlights as unstack_spotlights

@@ -1,1 +1,6 @@
 """Scene files and the showcase scenes (stage, desert, Noh) used by the gallery and the CLIs."""
+
+from ._shafts_scene import RENDER_DEFAULTS as RENDER_DEFAULTS
+from ._shafts_scene import ShaftsSceneWarning as ShaftsSceneWarning
+from ._shafts_scene import load_shafts_scene as load_shafts_scene
+from ._shafts_scene import shafts_scene_from_dict as shafts_scene_from_dict

@@ -1,2 +1,8 @@
 """Shadows: shadow maps rendered from lights, PCF/PCSS soft shadows, heightfield ray marching,
 horizon maps. One private module per technique; public names re-exported here."""
+
+from ._shadow_map import ShadowMap as ShadowMap
+from ._shadow_map import render_shadow_map as render_shadow_map
+from ._shadow_map import shadow_test as shadow_test
+from ._shadow_map import shadow_uv_distance as shadow_uv_distance
+from ._shadow_map import texel_directions as texel_directions

@@ -1,0 +1,95 @@
+"""Shadow maps rendered from a spot light over a perspective grid covering its cone.
+
+Depth-map format (other techniques such as PCF/PCSS build on it):
+
+- `ShadowMap.depth[row, col]` (N x N, float) is the Euclidean distance from the light position
+  to the nearest surface along the ray through the texel centre u = (col + 1/2)/N,
+  v = (row + 1/2)/N, whose direction in the light's frame (Mitsuba's look-at frame, rows of
+  `ShadowMap.rotation`) is normalize((2u - 1) tan(c), (2v - 1) tan(c), 1), c = cutoff. This is
+  exactly the inverse of the spot light's light-map uv formula, so a point's shadow-map texel and
+  light-map coordinate are the same uv. `inf` where the texel ray hits nothing.
+- Lookup: `shadow_uv_distance(sm, P)` gives the point's uv and its distance to the light;
+  `shadow_test` compares the distance with the NEAREST texel's depth plus a bias
+  (lit = 1 when distance <= depth + bias). Points behind the light or outside the map are lit
+  (they are outside the cone, where the spot light emits nothing anyway).
+
+The map holds no gradient (built under `stop_gradient`): automatic differentiation does not see
+the boundary terms of hard shadow edges anyway.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from .._math import safe_norm
+from ..geometry import Primitives, cast_rays
+from ..lights._spot import SpotLight
+from ..textures import nearest
+
+__all__ = ["ShadowMap", "render_shadow_map", "shadow_uv_distance", "shadow_test", "texel_directions"]
+
+
+class ShadowMap(eqx.Module):
+    """Depth from one spot light: see the module docstring for the format."""
+
+    depth: Float[Array, "N N"]
+    position: Float[Array, "3"]
+    rotation: Float[Array, "3 3"]
+    tan_cutoff: Float[Array, ""]
+
+    @property
+    def resolution(self) -> int:
+        return self.depth.shape[0]
+
+    @property
+    def texel_angle(self) -> Float[Array, ""]:
+        """Angular size of one texel at the centre of the map (radians)."""
+        return 2.0 * self.tan_cutoff / self.depth.shape[0]
+
+
+def texel_directions(rotation: Float[ArrayLike, "3 3"], tan_cutoff: Float[ArrayLike, ""], resolution: int
+                     ) -> Float[Array, "N N 3"]:
+    """World-space unit directions through every texel centre."""
+    rotation = jnp.asarray(rotation)
+    c = (jnp.arange(resolution, dtype=rotation.dtype) + 0.5) / resolution * 2.0 - 1.0
+    y, x = jnp.meshgrid(c, c, indexing="ij")
+    local = jnp.stack([x * tan_cutoff, y * tan_cutoff, jnp.ones_like(x)], axis=-1)
+    local = local / safe_norm(local)[..., None]
+    return local @ rotation
+
+
+def render_shadow_map(light: SpotLight, prims: Primitives, *, resolution: int = 1024) -> ShadowMap:
+    """Distance to the nearest occluder over an N x N perspective grid covering the light's cone."""
+    light = jax.lax.stop_gradient(light)
+    rotation = light.rotation()
+    tan_c = jnp.tan(light.cutoff)
+    dirs = texel_directions(rotation, tan_c, resolution)
+    prims = jax.lax.stop_gradient(prims)
+    t, _, _ = cast_rays(light.position, dirs, prims)
+    return ShadowMap(depth=t, position=light.position, rotation=rotation, tan_cutoff=tan_c)
+
+
+def shadow_uv_distance(sm: ShadowMap, points: Float[ArrayLike, "*B 3"]
+                       ) -> tuple[Float[Array, "*B 2"], Float[Array, "*B"], Float[Array, "*B"]]:
+    """(uv, distance to the light, in_front) of each point in the map's projection."""
+    points = jnp.asarray(points)
+    rel = points - jnp.broadcast_to(sm.position, points.shape)
+    local = rel @ sm.rotation.T
+    z = local[..., 2]
+    front = z > 1e-9
+    scale = 0.5 / (jnp.where(front, z, 1.0) * sm.tan_cutoff)
+    uv = 0.5 + local[..., :2] * scale[..., None]
+    return uv, safe_norm(rel), front
+
+
+def shadow_test(sm: ShadowMap, points: Float[ArrayLike, "*B 3"], *, bias: float | Array = 0.002) -> Float[Array, "*B"]:
+    """Visibility H (1 lit, 0 shadowed) by the nearest-texel depth compare with `bias` (metres;
+    a scalar or an array broadcastable to the points' batch shape, e.g. slope-scaled)."""
+    uv, dist, front = shadow_uv_distance(sm, points)
+    inside = front & jnp.all((uv >= 0.0) & (uv <= 1.0), axis=-1)
+    depth = nearest(sm.depth[..., None], uv, wrap="clamp")[..., 0]
+    lit = (dist <= depth + bias) | ~inside
+    return jnp.where(lit, 1.0, 0.0).astype(dist.dtype)

@@ -1,0 +1,293 @@
+"""The sample-plane method of paper 000 (eqs. 5-9), emulating the graphics-hardware pipeline.
+
+Per spot light:
+- n sample planes parallel to the screen, equally spaced (midpoints of n intervals of width dr)
+  between the nearest and farthest view depths the lit volume reaches (the cone cut at the
+  light's reach, see `light_reach` / `cone_depth_range`). On a pixel whose ray makes the angle psi
+  with the view axis, plane depth r lies at distance t = r / cos(psi) and dt = dr / cos(psi).
+- m sub-sample planes per interval [r_i - dr/2, r_i + dr/2] (midpoints) average H * I_l into
+  J_i (eqs. 8-9): H from the light's shadow map (nearest texel + bias), I_l from the spot light
+  (falloff and projected light map); samples behind the visible surface contribute nothing.
+- g = F(alpha) h(s, t) (eq. 6) from a 1-D table of F over alpha in [0, pi] and a 2-D table of h
+  over s in [s_min, s_max], t in [0, t_max] (`render.table_size` entries each, linear
+  interpolation, clamped at the ends like a texture), with alpha and (s, t) computed at the
+  vertices of a coarse mesh on each plane (`mesh` = cells across x down) and interpolated
+  bilinearly to the pixels, as texture coordinates are. `g_per_pixel=True` computes alpha, s, t
+  per pixel; `tables=False` evaluates F and h in closed form (both only in float mode).
+- I_s = sum_i J_i g_i dt (eq. 7), added plane by plane to the frame buffer.
+
+8-bit emulation (`quantize_bits` = B > 0; design.md): the F and h tables are scaled by their
+maxima and rounded to 2^B - 1 levels, the light maps likewise (by their maximum), J (rendered
+into a B-bit buffer) too, and the frame buffer accumulates in steps of display_white / (2^B - 1),
+saturating at display_white. Shadow-map depths are not quantized. Rounding has a straight-through
+gradient (`jaxrender.textures.quantize`).
+
+Pruning: the image is cut into tiles; a tile is processed (`lax.cond` inside `lax.map`) only when
+some pixel's ray passes through the light's cone in front of the visible surface (the per-pixel
+ray/cone interval), so pixels outside every cone's screen footprint cost (almost) nothing, and the
+planes only span each cone's own depth range. Static shapes throughout; jittable and
+differentiable end to end.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._math import safe_norm
+from ..geometry import cast_rays, hit_point
+from ..shadows._shadow_map import ShadowMap, render_shadow_map, shadow_test
+from ..textures import bilinear, quantize
+from ._model import FAR, S_FLOOR, attenuation_h, cone_depth_range, cone_intervals, light_reach, phase_cos, surface_term
+from ._raymarch import shadow_ray_visibility
+from ._scene import ShaftsScene
+
+__all__ = ["render_planes", "shadow_maps"]
+
+_SLOPE_BIAS = 1.5  # surface shadow lookups: extra bias in texel footprints x tan(incidence)
+_MAX_SLOPE = 8.0   # cap on tan(incidence) in that slope-scaled bias
+_NORMAL_OFFSET = 2.0  # surface shadow lookups move this many texel footprints along the normal
+
+
+def shadow_maps(scene: ShaftsScene) -> tuple[ShadowMap, ...]:
+    """One shadow map per spot light at `scene.render.shadow_map` resolution."""
+    return tuple(render_shadow_map(light, scene.prims, resolution=scene.render.shadow_map) for light in scene.lights)
+
+
+def _interp_weights(n_pixels: int, cells: int) -> np.ndarray:
+    """(n_pixels, cells + 1) linear-interpolation weights from mesh vertices to pixel centres."""
+    x = (np.arange(n_pixels) + 0.5) / n_pixels * cells
+    i0 = np.clip(np.floor(x).astype(int), 0, cells - 1)
+    f = x - i0
+    w = np.zeros((n_pixels, cells + 1))
+    w[np.arange(n_pixels), i0] = 1.0 - f
+    w[np.arange(n_pixels), i0 + 1] = f
+    return w
+
+
+def _angle(cos_a: Array, sin_a: Array) -> Array:
+    return jnp.arctan2(sin_a, cos_a)
+
+
+def _scatter_geometry(points: Array, dirs: Array, light_pos: Array) -> tuple[Array, Array]:
+    """(alpha, s) at points seen along unit view `dirs`: alpha between the light's propagation
+    direction and the direction toward the eye (-dirs), gradient-safe (atan2, safe norms)."""
+    rel = points - jnp.broadcast_to(light_pos, points.shape)
+    s = safe_norm(rel)
+    w = rel / jnp.maximum(s, S_FLOOR)[..., None]
+    to_eye = -dirs
+    cos_a = jnp.sum(w * to_eye, axis=-1)
+    sin_a = safe_norm(jnp.cross(w, to_eye))
+    return _angle(cos_a, sin_a), s
+
+
+def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, quantize_bits: int = 0,
+                  mesh: tuple[int, int] = (15, 10), g_per_pixel: bool = False, tables: bool = True,
+                  tile: tuple[int, int] = (16, 32), prune: bool = True, surface_shadows: str = "map",
+                  return_parts: bool = False
+                  ) -> Float[Array, "H W 3"]:
+    """Render `scene` (H, W, 3 linear RGB) with the sample-plane method (see module docstring).
+
+    planes, subplanes: n and m of the paper (default 30 x 6). quantize_bits: 0 = float, 8 = the
+    paper's hardware. mesh: (cells across, cells down) of the texture-coordinate mesh (default 15 x 10).
+    g_per_pixel / tables: skip the mesh interpolation / the tables (float mode only).
+    tile: (rows, cols) of the pruning tiles. prune: skip tiles outside every cone (the result is
+    the same either way). surface_shadows: "map" (shadow maps with a slope-scaled bias, as the
+    hardware does) or "rays" (exact shadow rays, as the ray march). return_parts: also return (surface, per-light in-scattering list).
+    """
+    if quantize_bits and (not tables or g_per_pixel):
+        raise ValueError("quantize_bits > 0 emulates the hardware: it needs tables=True and g_per_pixel=False")
+    B = int(quantize_bits)
+    cam = scene.camera
+    H, W = cam.height, cam.width
+    settings = scene.render
+    rho, kappa, K = scene.medium.rho, scene.medium.kappa, scene.medium.K
+    sigma = rho * kappa
+    eye = cam.eye
+    _, _, forward = cam.frame()
+    dirs = cam.primary_rays()
+    dtype = dirs.dtype
+    cos_psi = dirs @ forward
+    t_hit, normals, albedo = cast_rays(eye, dirs, scene.prims)
+    points = hit_point(eye, dirs, t_hit, far=FAR)
+    surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
+    maps = shadow_maps(scene)
+    white = jnp.asarray(settings.display_white, dtype=dtype)
+
+    def map_visibility(index, pts, nrm, s):
+        # normal-offset + slope-scaled bias against shadow acne on surfaces seen at grazing angles
+        sm = maps[index]
+        light = scene.lights[index]
+        w = (pts - jnp.broadcast_to(light.position, pts.shape)) / jnp.maximum(s, S_FLOOR)[..., None]
+        cos_signed = jnp.sum(w * nrm, axis=-1)
+        cos_i = jnp.clip(jnp.abs(cos_signed), 1e-3, 1.0)
+        tan_i = jnp.minimum(jnp.sqrt(jnp.maximum(1.0 - cos_i * cos_i, 0.0)) / cos_i, _MAX_SLOPE)
+        footprint = sm.texel_angle * s
+        facing = jnp.where(cos_signed < 0, 1.0, -1.0).astype(pts.dtype)  # normal side toward the light
+        lookup = pts + nrm * (_NORMAL_OFFSET * footprint * facing)[..., None]
+        bias = settings.shadow_bias + _SLOPE_BIAS * footprint * tan_i
+        return shadow_test(sm, jax.lax.stop_gradient(lookup), bias=jax.lax.stop_gradient(bias))
+
+    if surface_shadows == "map":
+        visibility = map_visibility
+    elif surface_shadows == "rays":
+        visibility = shadow_ray_visibility(scene)
+    else:
+        raise ValueError(f"surface_shadows must be 'map' or 'rays', not {surface_shadows!r}")
+    surface = surface_term(scene, points, normals, albedo, t_hit, visibility, quantize_bits=B)
+    frame = quantize(surface, B, scale=white) if B else surface
+
+    # tables of F (alpha in [0, pi]) and h (s in [s_min, s_max] along columns, t in [0, t_max] along rows)
+    N = settings.table_size
+    s_min = jnp.asarray(settings.s_min, dtype=dtype)
+    s_max = jnp.asarray(settings.s_max, dtype=dtype)
+    t_max = jnp.asarray(settings.t_max, dtype=dtype)
+    nodes = jnp.arange(N, dtype=dtype) / (N - 1)
+    F_tab = phase_cos(jnp.cos(nodes * jnp.pi), K)
+    h_tab = attenuation_h((s_min + nodes * (s_max - s_min))[None, :], (nodes * t_max)[:, None], rho, kappa)
+    F_max, h_max = jnp.max(F_tab), jnp.max(h_tab)
+    if B:
+        F_tab = quantize(F_tab / F_max, B) * F_max
+        h_tab = quantize(h_tab / h_max, B) * h_max
+
+    def g_of(alpha, s, t):
+        if not tables:
+            return phase_cos(jnp.cos(alpha), K) * attenuation_h(s, t, rho, kappa)
+        ua = (jnp.clip(alpha / jnp.pi, 0.0, 1.0) * (N - 1) + 0.5) / N
+        F = bilinear(F_tab[None, :, None], jnp.stack([ua, jnp.full_like(ua, 0.5)], axis=-1))[..., 0]
+        us = ((s - s_min) / (s_max - s_min) * (N - 1) + 0.5) / N
+        vt = (t / t_max * (N - 1) + 0.5) / N
+        h = bilinear(h_tab[..., None], jnp.stack([us, vt], axis=-1))[..., 0]
+        return F * h
+
+    # tiles
+    ty, tx = tile
+    Hp, Wp = -(-H // ty) * ty, -(-W // tx) * tx
+    n_ty, n_tx = Hp // ty, Wp // tx
+
+    def pad(x, value):
+        widths = ((0, Hp - H), (0, Wp - W)) + ((0, 0),) * (x.ndim - 2)
+        return jnp.pad(x, widths, mode="edge") if value is None else jnp.pad(x, widths, constant_values=value)
+
+    def tiles_of(x):  # (Hp, Wp, ...) -> (n_tiles, ty, tx, ...)
+        x = x.reshape((n_ty, ty, n_tx, tx) + x.shape[2:])
+        x = jnp.moveaxis(x, 2, 1)
+        return x.reshape((n_ty * n_tx, ty, tx) + x.shape[4:])
+
+    def untile(x):  # (n_tiles, ty, tx, C) -> (H, W, C)
+        x = x.reshape((n_ty, n_tx, ty, tx) + x.shape[3:])
+        x = jnp.moveaxis(x, 1, 2).reshape((Hp, Wp) + x.shape[4:])
+        return x[:H, :W]
+
+    mx, my = mesh
+    wy_full = jnp.asarray(np.pad(_interp_weights(H, my), ((0, Hp - H), (0, 0)), mode="edge"), dtype=dtype)
+    wx_full = jnp.asarray(np.pad(_interp_weights(W, mx), ((0, Wp - W), (0, 0)), mode="edge"), dtype=dtype)
+    tile_rows = jnp.repeat(jnp.arange(n_ty), n_tx) * ty
+    tile_cols = jnp.tile(jnp.arange(n_tx), n_ty) * tx
+    vert_xy = jnp.stack(jnp.meshgrid(jnp.arange(mx + 1, dtype=dtype) * (W / mx),
+                                     jnp.arange(my + 1, dtype=dtype) * (H / my), indexing="xy"), axis=-1)
+    vert_dirs = cam.ray_direction(vert_xy)  # (my+1, mx+1, 3)
+    vert_cos = vert_dirs @ forward
+
+    dirs_t = tiles_of(pad(dirs, None))
+    cos_t = tiles_of(pad(cos_psi, None))
+    surf_t = tiles_of(pad(surface_t, 0.0))
+    sub = ((jnp.arange(subplanes, dtype=dtype) + 0.5) / subplanes - 0.5)
+
+    per_light = []
+    for index, light in enumerate(scene.lights):
+        sm = maps[index]
+        reach = light_reach(scene, light)
+        r_near, r_far = cone_depth_range(light, reach, eye, forward)
+        dr = (r_far - r_near) / planes
+        r = r_near + (jnp.arange(planes, dtype=dtype) + 0.5) * dr  # (n,)
+        depths = r[:, None] + sub[None, :] * dr  # (n, m)
+        rotation = light.rotation()
+        local_eye = rotation @ (eye - light.position)
+        tan_c = jnp.tan(light.cutoff)
+        lmap = light.quantized_map(B)
+        map_max = jnp.max(lmap)
+        uniform_map = lmap.shape[0] * lmap.shape[1] == 1
+        lmap_n = lmap / map_max
+        scale_rgb = light.intensity * map_max  # (3,)
+        depth_tex = jax.lax.stop_gradient(sm.depth)
+        res = sm.resolution
+        bias = settings.shadow_bias
+
+        if prune:
+            t0, t1 = cone_intervals(scene, light, dirs, surface_t, reach)
+            active_px = tiles_of(pad(t1 > t0, False))
+            active = jnp.any(active_px.reshape((active_px.shape[0], -1)), axis=1)
+        else:
+            active = jnp.ones((n_ty * n_tx,), dtype=bool)
+
+        if not g_per_pixel:
+            t_vert = r[:, None, None] / vert_cos[None, :, :]  # (n, my+1, mx+1)
+            p_vert = eye[None, None, None, :] + t_vert[..., None] * vert_dirs[None, :, :, :]
+            a_vert, s_vert = _scatter_geometry(p_vert, jnp.broadcast_to(vert_dirs, p_vert.shape), light.position)
+            grids = jnp.stack([a_vert, s_vert, t_vert], axis=0)  # (3, n, my+1, mx+1)
+        else:
+            grids = None
+
+        def tile_fn(args, light=light, r=r, dr=dr, depths=depths, rotation=rotation, local_eye=local_eye, tan_c=tan_c,
+                    lmap_n=lmap_n, uniform_map=uniform_map, scale_rgb=scale_rgb, depth_tex=depth_tex, res=res,
+                    grids=grids, bias=bias):
+            d, cpsi, st, row0, col0 = args
+            tau_unit = 1.0 / cpsi  # distance along the ray per unit depth
+            # g per plane and pixel
+            if grids is None:
+                t_pl = r[:, None, None] * tau_unit[None]
+                p_pl = eye[None, None, None, :] + t_pl[..., None] * d[None]
+                a_pl, s_pl = _scatter_geometry(p_pl, jnp.broadcast_to(d, p_pl.shape), light.position)
+            else:
+                wy = jax.lax.dynamic_slice_in_dim(wy_full, row0, ty, axis=0)
+                wx = jax.lax.dynamic_slice_in_dim(wx_full, col0, tx, axis=0)
+                interp = jnp.einsum("ya,knab,xb->knyx", wy, grids, wx)
+                a_pl, s_pl, t_pl = interp[0], interp[1], interp[2]
+            g = g_of(a_pl, s_pl, t_pl)  # (n, ty, tx)
+            # sub-sample planes: H * I_l averaged into J
+            ld = d @ rotation.T  # (ty, tx, 3) local view directions
+            tau = depths[:, :, None, None] * tau_unit[None, None]  # (n, m, ty, tx)
+            loc = local_eye[None, None, None, None, :] + tau[..., None] * ld[None, None]
+            s2 = jnp.sum(loc * loc, axis=-1)
+            s = jnp.sqrt(jnp.maximum(s2, S_FLOOR * S_FLOOR))
+            z = loc[..., 2]
+            fall = light.falloff(loc)
+            front = z > 1e-9
+            inv = 0.5 / (jnp.where(front, z, 1.0) * tan_c)
+            u = 0.5 + loc[..., 0] * inv
+            v = 0.5 + loc[..., 1] * inv
+            col = jnp.clip(jnp.floor(u * res).astype(jnp.int32), 0, res - 1)
+            row = jnp.clip(jnp.floor(v * res).astype(jnp.int32), 0, res - 1)
+            occ = depth_tex[row, col]
+            lit = (s <= occ + bias) | ~front
+            visible = tau < st[None, None]
+            weight = jnp.where(lit & visible, fall, 0.0)
+            if uniform_map:
+                J = jnp.broadcast_to(jnp.mean(weight, axis=1)[..., None], weight.shape[:1] + weight.shape[2:] + (3,))
+            else:
+                uv = jnp.stack([u, v], axis=-1)
+                J = jnp.mean(bilinear(lmap_n, uv) * weight[..., None], axis=1)  # (n, ty, tx, 3)
+            if B:
+                J = quantize(J, B)
+            dt = dr * tau_unit  # (ty, tx)
+            contrib = J * (g * dt[None])[..., None] * scale_rgb[None, None, None, :]
+            if B:
+                contrib = quantize(contrib, B, scale=white)
+            return jnp.sum(contrib, axis=0)
+
+        def maybe_tile(args, active_tile):
+            zeros = jnp.zeros((ty, tx, 3), dtype=dtype)
+            return jax.lax.cond(active_tile, lambda a: tile_fn(a), lambda a: zeros, args)
+
+        out = jax.lax.map(lambda a: maybe_tile(a[:-1], a[-1]), (dirs_t, cos_t, surf_t, tile_rows, tile_cols, active))
+        per_light.append(untile(out))
+
+    image = frame + sum(per_light)
+    if B:
+        image = jnp.minimum(image, white)
+    if return_parts:
+        return image, (surface, per_light)
+    return image
