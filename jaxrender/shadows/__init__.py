@@ -6,3 +6,11 @@ from ._shadow_map import render_shadow_map as render_shadow_map
 from ._shadow_map import shadow_test as shadow_test
 from ._shadow_map import shadow_uv_distance as shadow_uv_distance
 from ._shadow_map import texel_directions as texel_directions
+from ._pcss import pcf as pcf
+from ._pcss import pcss as pcss
+
+from ._heightfield import heightfield_shadow as heightfield_shadow
+from ._heightfield import triangle_height as triangle_height
+from ._horizon import horizon_directions as horizon_directions
+from ._horizon import horizon_map as horizon_map
+from ._horizon import horizon_shadow as horizon_shadow
