@@ -14,3 +14,12 @@ from .synth import stratified_light_subset as stratified_light_subset
 from .synth import synth_capture as synth_capture
 from .synth import synth_maps as synth_maps
 from .synth import synth_observations as synth_observations
+from .em import GaussianMixture as GaussianMixture
+from .em import em_fit as em_fit
+from .em import em_texel as em_texel
+from .em import em_texels as em_texels
+from .em import em_downsample as em_downsample
+from .em import moment_matched_texel as moment_matched_texel
+from .em import mip_texel as mip_texel
+from .pyramid import build_pyramid as build_pyramid
+from .pyramid import pyramid_levels as pyramid_levels

@@ -1,0 +1,74 @@
+"""The EM multi-resolution pyramid of a BTF directory (paper 004, section 3.2).
+
+Level l+1 (ceil-half size, odd sizes edge-padded as `jaxrender.textures.downsample2`) is built
+from level l texel by texel with `fitting.em.em_downsample`: up to two anisotropic lobes per
+texel, `rho_d` averaged. Levels are written through `jaxrender.io.write_btf_levels`, which keeps
+level 0, writes `level_01.exr`, ... and rewrites `btf.json` last.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from jaxrender.brdf import BTFTexel
+from jaxrender.io import InputError, read_btf, write_btf_levels
+
+from .em import DEFAULT_ITERATIONS, DEFAULT_ORDER, ONE_LOBE_TOLERANCE, TWO_LOBE_GAIN, em_downsample
+
+__all__ = ["build_pyramid", "pyramid_levels", "pyramid_sizes"]
+
+
+def pyramid_sizes(size: tuple[int, int], *, levels: int | None = None) -> list[tuple[int, int]]:
+    """Sizes of levels 0, 1, ... (ceil halving) down to 1x1, or the first `levels` of them."""
+    sizes = [(int(size[0]), int(size[1]))]
+    while (levels is None and max(sizes[-1]) > 1) or (levels is not None and len(sizes) < levels):
+        sizes.append((math.ceil(sizes[-1][0] / 2), math.ceil(sizes[-1][1] / 2)))
+    return sizes
+
+
+def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = DEFAULT_ORDER,
+                   iterations: int = DEFAULT_ITERATIONS, progress: Callable[[int], object] | None = None,
+                   ) -> tuple[list[BTFTexel], list[dict]]:
+    """Levels 1, 2, ... of an `H W` BTFTexel (level 0 not included) and per-level statistics."""
+    count = len(pyramid_sizes(level0.weight.shape, levels=levels))
+    out, stats = [], []
+    current = level0
+    for _ in range(1, count):  # a handful of levels: each one is a vmapped kernel call
+        current, info = em_downsample(current, order=order, iterations=iterations)
+        out.append(current)
+        stats.append({"size": list(current.weight.shape),
+                      "two_lobe_fraction": float(np.mean(np.asarray(info.two_lobes))),
+                      "max_iterations": int(np.max(np.asarray(info.iterations))),
+                      "converged_fraction": float(np.mean(np.asarray(info.converged)))})
+        if progress is not None:
+            progress(1)
+    return out, stats
+
+
+def build_pyramid(btf_dir: str | os.PathLike, *, levels: int | None = None, order: int = DEFAULT_ORDER,
+                  iterations: int = DEFAULT_ITERATIONS, progress: Callable[[int], object] | None = None) -> Path:
+    """Rebuild levels 1.. of the BTF directory `btf_dir` from its level 0 by EM; returns the directory.
+
+    `levels` is the total number of levels afterwards, level 0 included (default: down to 1x1);
+    existing coarser levels are replaced. `progress(1)` is called after each level (e.g. a tqdm
+    bar's `update`). `btf.json` is rewritten last with a `pyramid` entry (method and per-level
+    statistics); raises InputError for an incomplete or malformed directory.
+    """
+    btf_dir = Path(btf_dir)
+    if levels is not None and levels < 1:
+        raise InputError(btf_dir, f"levels must be >= 1, got {levels}")
+    _, existing = read_btf(btf_dir)
+    level0 = BTFTexel.from_channels(existing[0])
+    if not np.all(np.isfinite(np.asarray(level0.weight))):
+        raise InputError(btf_dir / "level_00.exr", "non-finite weight channel")
+    coarse, stats = pyramid_levels(level0, levels=levels, order=order, iterations=iterations, progress=progress)
+    channels = [{name: np.asarray(v, dtype=np.float32) for name, v in texel.to_channels().items()} for texel in coarse]
+    meta = {"pyramid": {"method": "em", "order": order, "iterations": iterations,
+                        "one_lobe_tolerance": ONE_LOBE_TOLERANCE, "two_lobe_gain": TWO_LOBE_GAIN,
+                        "levels": stats}}
+    return write_btf_levels(btf_dir, channels, start=1, meta=meta)
