@@ -1,0 +1,100 @@
+"""Paper 000, fig. 5: accuracy and time vs. the number of sub-sample planes.
+
+A sphere under one spot light (the scene of fig. 6), 720 x 480, n = 30 sample planes, sub-sample
+planes m = 1..25, 8-bit mode (the paper's hardware); the image with m = 25 is the "true image" and
+the error is the RMS difference to it over all pixels and channels, in display levels 0..255.
+Float mode is shown beside it (same reference rule, float images).
+
+Paper: the error is below 1.0 level from m = 6 on, where a frame takes 0.17 s; so m = 6.
+
+    python benchmarks/shafts_fig5.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import _shafts_common as C  # noqa: E402
+
+SUBPLANES = [1, 2, 3, 4, 6, 8, 12, 16, 25]
+SUBPLANES_QUICK = [1, 6, 25]
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="180 x 120, 3 sub-plane counts, no float column")
+    args = parser.parse_args(argv)
+
+    import equinox as eqx
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from jaxrender.shafts import render_planes
+
+    w, h = (180, 120) if args.quick else (C.PAPER_W, C.PAPER_H)
+    counts = SUBPLANES_QUICK if args.quick else SUBPLANES
+    repeats = 3 if args.quick else 2
+    scene = C.load(C.sphere_scene(w, h))
+    white = float(C.RENDER["display_white"])
+    print(f"# fig. 5, {w} x {h}, n = 30 planes; {C.machine()}")
+
+    images8, imagesf, times8, compiles = {}, {}, {}, {}
+    for m in counts:
+        fn8 = eqx.filter_jit(functools.partial(render_planes, planes=30, subplanes=m, quantize_bits=8))
+        images8[m], compiles[m], times8[m] = C.timed(fn8, scene, repeats=repeats)
+        if not args.quick:  # float mode beside it (one compile more each)
+            fnf = eqx.filter_jit(functools.partial(render_planes, planes=30, subplanes=m, quantize_bits=0))
+            imagesf[m], _, _ = C.timed(fnf, scene, repeats=0)
+        else:
+            imagesf[m] = np.full_like(images8[m], np.nan)
+        print(f"  m = {m}: frame {times8[m]:.3f} s", flush=True)
+
+    top = counts[-1]
+    ref8, reff = C.levels(images8[top], white), C.levels(imagesf[top], white)
+    rms8 = {m: float(np.sqrt(np.mean((C.levels(images8[m], white) - ref8) ** 2))) for m in counts}
+    rmsf = {m: float(np.sqrt(np.mean((C.levels(imagesf[m], white) - reff) ** 2))) for m in counts}
+    rows = [[m, f"{rms8[m]:.3f}", f"{rmsf[m]:.3f}", f"{compiles[m]:.1f}", f"{times8[m]:.3f}"] for m in counts]
+    text = C.table(["sub-planes m", f"8-bit: RMS diff. to m = {top}, levels", f"float: RMS diff. to m = {top}, levels",
+                    "compile + 1st run s", "8-bit median frame s"], rows)
+    print(text)
+    below = [m for m in counts[:-1] if rms8[m] < 1.0]
+    print(f"8-bit error below 1.0 level from m = {below[0] if below else 'never'} (paper: from m = 6; 0.17 s at m = 6)")
+
+    fig, ax = plt.subplots(figsize=(6.4, 4))
+    xs = counts[:-1]
+    ax.plot(xs, [rms8[m] for m in xs], "o-", color="C0", label="8-bit RMS error (levels)")
+    if not args.quick:
+        ax.plot(xs, [rmsf[m] for m in xs], "s--", color="C2", label="float RMS error (levels)")
+    ax.axhline(1.0, color="gray", lw=0.8)
+    ax.set_xlabel("number of sub-sample planes")
+    ax.set_ylabel(f"RMS difference to m = {top} (levels)")
+    ax2 = ax.twinx()
+    ax2.plot(counts, [times8[m] for m in counts], "^:", color="C1", label="8-bit time")
+    ax2.set_ylabel("seconds per frame")
+    lines = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
+    labels = ax.get_legend_handles_labels()[1] + ax2.get_legend_handles_labels()[1]
+    ax.legend(lines, labels, loc="upper center")
+    ax.set_title(f"Fig. 5 rerun: sphere under a spot light, {w} x {h}, n = 30")
+    path = C.save_figure(fig, "shafts_fig5.png")
+    print(f"figure: {path.relative_to(C.REPO)}")
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.4))
+    for a, m in zip(ax, [1, 6]):
+        a.imshow(np.clip(images8[m] / white, 0, 1) ** (1 / 2.2))
+        a.set_title(f"fig. 6({'a' if m == 1 else 'b'}) rerun: m = {m}, 8-bit")
+        a.axis("off")
+    path6 = C.save_figure(fig, "shafts_fig6.png")
+    print(f"figure: {path6.relative_to(C.REPO)}")
+    return {"subplanes": counts, "rms8": rms8, "rmsf": rmsf, "time8": times8}
+
+
+if __name__ == "__main__":
+    main()

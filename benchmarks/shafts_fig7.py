@@ -1,0 +1,74 @@
+"""Paper 000, fig. 7 / section 5.2: a stage under five spot lights (two projecting polka-dot light
+maps), 720 x 480, 30 planes x 6 sub-planes, 8-bit: frame time against the number of lights 1..5
+and the time per light (slope of a least-squares line).
+
+Paper (GeForce2 GTS): 1.2 s for five lights, 0.4 s for the objects and 0.8 s for the shafts;
+time proportional to the number of lights (~0.16 s per light).
+
+    python benchmarks/shafts_fig7.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import _shafts_common as C  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="180 x 120, lights 1, 3, 5")
+    args = parser.parse_args(argv)
+
+    import equinox as eqx
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from jaxrender.shafts import render_planes
+
+    w, h = (180, 120) if args.quick else (C.PAPER_W, C.PAPER_H)
+    counts = [1, 3, 5] if args.quick else [1, 2, 3, 4, 5]
+    repeats = 3 if args.quick else 2
+    white = float(C.RENDER["display_white"])
+    print(f"# fig. 7, {w} x {h}, 30 x 6 planes, 8-bit; {C.machine()}")
+
+    render = eqx.filter_jit(functools.partial(render_planes, planes=30, subplanes=6, quantize_bits=8))
+    times, compiles, image = {}, {}, None
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in counts:
+            scene = C.load(C.stage_scene(k, w, h, base_dir=Path(tmp)), Path(tmp))
+            image, compiles[k], times[k] = C.timed(render, scene, repeats=repeats)
+            print(f"  {k} lights: frame {times[k]:.3f} s", flush=True)
+    slope, intercept = np.polyfit(counts, [times[k] for k in counts], 1)
+    rows = [[k, f"{compiles[k]:.1f}", f"{times[k]:.3f}", f"{times[k] / k:.3f}"] for k in counts]
+    text = C.table(["lights", "compile + 1st run s", "median frame s", "frame s / lights"], rows)
+    print(text)
+    print(f"least squares: frame = {intercept:.3f} s + {slope:.3f} s x lights "
+          f"(paper: 1.2 s for 5 lights = 0.4 s objects + 0.8 s shafts, ~0.16 s per light)")
+
+    fig, ax = plt.subplots(1, 2, figsize=(12, 3.8), gridspec_kw={"width_ratios": [1.5, 1]})
+    ax[0].imshow(np.clip(image / white, 0, 1) ** (1 / 2.2))
+    ax[0].set_title(f"stage, {counts[-1]} spot lights, 30 x 6 planes, 8-bit")
+    ax[0].axis("off")
+    ax[1].plot(counts, [times[k] for k in counts], "o-", label="measured")
+    ax[1].plot(counts, intercept + slope * np.asarray(counts, dtype=float), "--", label=f"{slope:.3f} s / light")
+    ax[1].set_xlabel("number of spot lights")
+    ax[1].set_ylabel("seconds per frame")
+    ax[1].set_xticks(counts)
+    ax[1].legend()
+    path = C.save_figure(fig, "shafts_fig7.png")
+    print(f"figure: {path.relative_to(C.REPO)}")
+    return {"lights": counts, "time": times, "slope": float(slope), "intercept": float(intercept)}
+
+
+if __name__ == "__main__":
+    main()
