@@ -76,18 +76,27 @@ def stratified_light_subset(key: PRNGKeyArray, n: int) -> np.ndarray:
     per_ring = len(PAPER_PHIS_DEG)
     edges = np.radians(np.clip(np.concatenate([PAPER_THETAS_DEG - 1.5, [PAPER_THETAS_DEG[-1] + 1.5]]), 0, 90))
     area = np.cos(edges[:-1]) - np.cos(edges[1:])
-    counts = np.zeros(len(area), int)
-    remaining = n
-    while remaining > 0:  # a handful of passes over 30 rings (host-side set-up)
-        open_rings = counts < per_ring
-        share = remaining * area * open_rings / np.sum(area * open_rings)
-        add = np.minimum(np.floor(share).astype(int), per_ring - counts)
-        if add.sum() == 0:
-            order = np.argsort(-(share - np.floor(share)) - (~open_rings) * 10.0)
-            add[order[:remaining]] = 1
-            add = np.minimum(add, per_ring - counts)
-        counts += add
-        remaining = n - counts.sum()
+    share = area / area.sum()
+    k_rings, key = jax.random.split(key)
+    if n * share.max() + 1 <= per_ring:
+        # Jittered systematic sampling of the cumulative solid angle: ring counts within one of
+        # n * share, and small n spread over all elevations.
+        u = (np.arange(n) + np.asarray(jax.random.uniform(k_rings, (n,)))) / n
+        rings = np.minimum(np.searchsorted(np.cumsum(share), u, side="right"), len(share) - 1)
+        counts = np.bincount(rings, minlength=len(share))
+    else:  # dense subsets: proportional shares capped at 72 per ring, largest remainders first
+        counts = np.zeros(len(area), int)
+        remaining = n
+        while remaining > 0:  # a handful of passes over 30 rings (host-side set-up)
+            open_rings = counts < per_ring
+            want = remaining * area * open_rings / np.sum(area * open_rings)
+            add = np.minimum(np.floor(want).astype(int), per_ring - counts)
+            if add.sum() == 0:
+                order = np.argsort(-(want - np.floor(want)) + (~open_rings) * 10.0)  # full rings last
+                add[order[:remaining]] = 1
+                add = np.minimum(add, per_ring - counts)
+            counts += add
+            remaining = n - counts.sum()
     ring_keys = jax.random.split(key, len(counts))
     chosen = []
     for ring, (count, ring_key) in enumerate(zip(counts, ring_keys, strict=True)):
