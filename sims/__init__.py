@@ -19,3 +19,9 @@ from ._fields import load_field as load_field
 from ._fields import preview_image as preview_image
 from ._fields import save_field as save_field
 from ._fields import simulate_in_chunks as simulate_in_chunks
+from .dust import DustParams as DustParams
+from .dust import advect_dust as advect_dust
+from .dust import dust_sizes as dust_sizes
+from .dust import init_dust as init_dust
+from .dust import sample_periodic as sample_periodic
+from .dust import simulate_dust as simulate_dust
