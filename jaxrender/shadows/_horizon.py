@@ -1,0 +1,199 @@
+"""Horizon maps (Max 1988; paper 001 section 3.5): per texel of a periodic heightfield, the largest
+slope toward any other texel along each of D directions, and the shadow test that interpolates
+the slope toward the light between the two neighbouring directions.
+
+Direction d has azimuth phi_d = 2 pi d / D in texture space (x along columns, y along rows). The
+path from texel P steps by e_d = (cos phi_d, sin phi_d) / max(|cos|, |sin|), i.e. it crosses one
+grid line per step, and follows the periodic wrap (note 2 of the paper): P + e, P + 2e, ...,
+P + (S - 1)e with S = the field's size. With D = 4 or 8 every sample lies on the lattice, so the
+8-direction map visits (x+1, y), (x+2, y), ..., (x-1, y) exactly as note 2; other D sample the
+field bilinearly (periodic). The horizon slope is
+
+    max(0, max_k (h(P + k e) - h(P)) / (k |e| texel_size)),
+
+clamped at 0: the tangent plane is the lowest horizon (a light below it is dark by Lambert anyway).
+
+The search is exact but skips work: a band of farther samples is searched only where the band's
+maximum height could beat the slope found so far (see `horizon_map`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+__all__ = ["horizon_directions", "horizon_map", "horizon_shadow"]
+
+
+def horizon_directions(directions: int = 8) -> list[tuple[float, float]]:
+    """Step vectors e_d (x, y) of the D search directions (static Python floats)."""
+    steps = []
+    for d in range(directions):
+        phi = 2.0 * math.pi * d / directions
+        c, s = math.cos(phi), math.sin(phi)
+        m = max(abs(c), abs(s))
+        ex, ey = c / m, s / m
+        ex = float(round(ex)) if abs(ex - round(ex)) < 1e-9 else ex
+        ey = float(round(ey)) if abs(ey - round(ey)) < 1e-9 else ey
+        steps.append((ex, ey))
+    return steps
+
+
+def _shifted(tiled: Array, oy: Array, ox: Array, rows: int, cols: int) -> Array:
+    """h(y + oy, x + ox) for every texel (integer offsets, periodic) from the 2x2-tiled field."""
+    return jax.lax.dynamic_slice(tiled, (jnp.mod(oy, rows), jnp.mod(ox, cols)), (rows, cols))
+
+
+def _sample(tiled: Array, k: Array, ex: float, ey: float, rows: int, cols: int) -> Array:
+    """h(P + k e) for every texel P; bilinear (periodic) unless e is a lattice vector."""
+    if ex == round(ex) and ey == round(ey):
+        return _shifted(tiled, k * int(ey), k * int(ex), rows, cols)
+    kf = k.astype(tiled.dtype)
+    ox, oy = kf * ex, kf * ey
+    x0, y0 = jnp.floor(ox), jnp.floor(oy)
+    fx, fy = ox - x0, oy - y0
+    x0i, y0i = x0.astype(jnp.int32), y0.astype(jnp.int32)
+    s00 = _shifted(tiled, y0i, x0i, rows, cols)
+    s01 = _shifted(tiled, y0i, x0i + 1, rows, cols)
+    s10 = _shifted(tiled, y0i + 1, x0i, rows, cols)
+    s11 = _shifted(tiled, y0i + 1, x0i + 1, rows, cols)
+    return (s00 * (1 - fx) + s01 * fx) * (1 - fy) + (s10 * (1 - fx) + s11 * fx) * fy
+
+
+def _gather(height: Array, y: Array, x: Array, k: Array, ex: Array, ey: Array) -> Array:
+    """h(P + k e) at per-lane texels P = (y, x) and steps e (periodic bilinear gather)."""
+    rows, cols = height.shape
+    kf = k.astype(height.dtype)
+    oy = y.astype(height.dtype) + kf * ey
+    ox = x.astype(height.dtype) + kf * ex
+    y0, x0 = jnp.floor(oy), jnp.floor(ox)
+    fy, fx = oy - y0, ox - x0
+    y0i = jnp.mod(y0.astype(jnp.int32), rows)
+    x0i = jnp.mod(x0.astype(jnp.int32), cols)
+    y1i, x1i = jnp.mod(y0i + 1, rows), jnp.mod(x0i + 1, cols)
+    top = height[y0i, x0i] * (1 - fx) + height[y0i, x1i] * fx
+    bottom = height[y1i, x0i] * (1 - fx) + height[y1i, x1i] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def _band_max(height: Array, ex: float, ey: float, n_bands: int) -> list[Array]:
+    """M_j(P) >= h(P + k e) for every k in [2^j, 2^(j+1)), j < n_bands: exact range maxima along
+    lattice paths (sparse table of doubling windows), the global maximum otherwise."""
+    if not (ex == round(ex) and ey == round(ey)):
+        return [jnp.full_like(height, jnp.max(height))] * n_bands
+    ix, iy = int(ex), int(ey)
+
+    def shift(a: Array, k: int) -> Array:  # a(P + k e), periodic
+        return jnp.roll(a, (-k * iy, -k * ix), axis=(0, 1))
+
+    window = height  # W_j(P) = max over k in [0, 2^j) of h(P + k e)
+    bands = []
+    for j in range(n_bands):
+        bands.append(shift(window, 2**j))
+        window = jnp.maximum(window, shift(window, 2**j))
+    return bands
+
+
+def horizon_map(height: Float[ArrayLike, "H W"], *, directions: int = 8, texel_size: float = 1.0,
+                near: int = 31, capacity: int | None = None) -> Float[Array, "D H W"]:
+    """Horizon slopes (tan of the horizon elevation) of a periodic heightfield in D directions.
+
+    `height` is in the same length unit as `texel_size` (scale ripple heights before calling).
+    Exact (equal to the full search of every path) but fast: all texels search the first steps
+    k <= `near` (rounded up to 2^j - 1) with whole-field shifts. Farther steps are split into
+    dyadic bands [2^j, 2^(j+1)); a band can only matter to a (texel, direction) lane when the
+    band's maximum height M_j (a sparse-table range maximum along the path) gives
+    (M_j - h) / (2^j |e|) above the lane's best slope so far. Those lanes are compacted into
+    batches of `capacity` (default: 1/8 of all lanes) and search the band with gathers.
+    Jit-compatible; the keywords are static.
+    """
+    height = jnp.asarray(height)
+    rows, cols = height.shape
+    n_path = max(rows, cols) - 1
+    tiled = jnp.tile(height, (2, 2))
+    steps = horizon_directions(directions)
+    lengths = [math.hypot(ex, ey) * texel_size for ex, ey in steps]
+    j0 = max(1, math.ceil(math.log2(min(near, n_path) + 1)))
+    n_bands = max(j0, math.ceil(math.log2(n_path + 1)))
+
+    # phase 1: every texel, steps 1 .. 2^j0 - 1, whole-field (periodic) shifts
+    def step(k, best):
+        slopes = jnp.stack([(_sample(tiled, k, ex, ey, rows, cols) - height) / (k.astype(height.dtype) * lk)
+                            for (ex, ey), lk in zip(steps, lengths)])
+        return jnp.maximum(best, slopes)
+
+    best = jax.lax.fori_loop(1, min(2**j0, n_path + 1), step, jnp.zeros((directions, rows, cols), height.dtype))
+    if 2**j0 > n_path:
+        return best
+
+    # phase 2: dyadic bands, only for the lanes whose band bound beats their best slope
+    bands = [_band_max(height, ex, ey, n_bands) for ex, ey in steps]
+    n_lanes = directions * rows * cols
+    cap = capacity or max(1, n_lanes // 8)
+    lattice = all(ex == round(ex) and ey == round(ey) for ex, ey in steps)
+    length_flat = jnp.broadcast_to(jnp.asarray(lengths, dtype=height.dtype)[:, None, None], (directions, rows, cols)).ravel()
+    ex_all = jnp.asarray([e[0] for e in steps], dtype=height.dtype)
+    ey_all = jnp.asarray([e[1] for e in steps], dtype=height.dtype)
+    h_flat = height.ravel()
+    best_flat = best.ravel()
+    for j in range(j0, n_bands):
+        k_lo, k_hi = 2**j, min(2 ** (j + 1) - 1, n_path)
+        band = jnp.stack([b[j] for b in bands]).ravel()
+        pending = ((band - jnp.tile(h_flat, directions)) > best_flat * (k_lo * length_flat)).astype(jnp.int32)
+
+        def round_body(state, k_lo=k_lo, k_hi=k_hi):
+            best_flat, pending = state
+            count = jnp.sum(pending)
+            idx = jnp.nonzero(pending, size=cap, fill_value=0)[0]
+            valid = jnp.arange(cap) < count
+            d = idx // (rows * cols)
+            y = (idx // cols) % rows
+            x = idx % cols
+            h0 = h_flat[y * cols + x]
+            lane_len = length_flat[idx]
+            ex, ey = ex_all[d], ey_all[d]
+            if lattice:
+                iex, iey = ex.astype(jnp.int32), ey.astype(jnp.int32)
+
+            def inner(k, b):
+                if lattice:
+                    sample = h_flat[jnp.mod(y + k * iey, rows) * cols + jnp.mod(x + k * iex, cols)]
+                else:
+                    sample = _gather(height, y, x, k, ex, ey)
+                return jnp.maximum(b, (sample - h0) / (k.astype(height.dtype) * lane_len))
+
+            b = jax.lax.fori_loop(k_lo, k_hi + 1, inner, best_flat[idx])
+            best_flat = best_flat.at[idx].max(jnp.where(valid, b, 0.0))
+            pending = pending.at[idx].min(jnp.where(valid, 0, 1))
+            return best_flat, pending
+
+        best_flat, _ = jax.lax.while_loop(lambda s: jnp.any(s[1] > 0), round_body, (best_flat, pending))
+    return best_flat.reshape(directions, rows, cols)
+
+
+def horizon_shadow(horizon: Float[ArrayLike, "D ..."], light_local: Float[ArrayLike, "... 3"]) -> Bool[Array, "..."]:
+    """True where the light is blocked: the light's slope lz / |(lx, ly)| is below the horizon
+    slope interpolated linearly in azimuth between the two neighbouring directions.
+
+    `horizon[d]` holds the slopes of direction d at each shading point (already looked up);
+    `light_local` is the unit light vector in the heightfield's frame (x, y along the texture
+    axes, z along the un-bumped normal)."""
+    horizon = jnp.asarray(horizon)
+    light_local = jnp.asarray(light_local)
+    n_dir = horizon.shape[0]
+    lx, ly, lz = light_local[..., 0], light_local[..., 1], light_local[..., 2]
+    phi = jnp.mod(jnp.arctan2(ly, lx), 2 * jnp.pi)
+    pos = phi * (n_dir / (2 * jnp.pi))
+    d0 = jnp.floor(pos)
+    w = pos - d0
+    d0i = jnp.mod(d0.astype(jnp.int32), n_dir)
+    d1i = jnp.mod(d0i + 1, n_dir)
+    h0 = jnp.take_along_axis(horizon, d0i[None], axis=0)[0]
+    h1 = jnp.take_along_axis(horizon, d1i[None], axis=0)[0]
+    h = (1 - w) * h0 + w * h1
+    flat = jnp.sqrt(lx * lx + ly * ly)
+    # light slope > horizon slope <=> lz > h * flat (no division; overhead light is never blocked)
+    return ~(lz > h * flat)
