@@ -114,16 +114,8 @@ def _check_image(path: Path, size: tuple[int, int] | None, check_pixels: bool) -
                     kinds = ", ".join(k for k, m in (("NaN", np.isnan(image)), ("Inf", np.isinf(image))) if m.any())
                     problems.append(f"{path}: {int(bad.sum())} non-finite values ({kinds})")
         else:
-            import skimage.io
-            import warnings
-
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                raw = skimage.io.imread(str(path))
-            if raw.dtype not in (np.uint8, np.uint16):
-                return [f"{path}: PNG pixel type {raw.dtype} (use 8- or 16-bit)"]
-            image = raw if raw.ndim == 3 else raw[..., None]
-            if image.shape[2] not in (1, 2, 3, 4) or image.shape[2] == 2:
+            image = read_image(path, srgb=False)  # 8/16-bit PNG (raises InputError for other types)
+            if image.shape[2] not in (1, 3, 4):
                 return [f"{path}: {image.shape[2]} channels (use gray, RGB or RGBA)"]
     except InputError as error:
         return [str(error)]
@@ -142,7 +134,7 @@ def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, w
     its type (`size`, `response`, `exposures_s`, `view`, `white`, `lights`), light and view
     directions strictly above the horizon (theta in [0, 90)), one image per exposure for the white
     board and for every light, and every image: present, readable (decoded in full when
-    `check_pixels`), 8/16-bit PNG or EXR, of the manifest's size, and (EXR) free of NaN/Inf.
+    `check_pixels` for EXR; PNGs are always decoded), 8/16-bit PNG or EXR, of the manifest's size, and (EXR) free of NaN/Inf.
     """
     root = Path(capture_dir)
     manifest_path = root / "capture.json"

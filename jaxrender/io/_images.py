@@ -81,12 +81,8 @@ def read_image(path: str | os.PathLike, *, srgb: bool = True) -> np.ndarray:
         return np.stack([channels[n] for n in names], axis=-1)
     if suffix not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
         raise InputError(path, f"unsupported image type {suffix!r} (use PNG or EXR)")
-    import skimage.io
-
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            raw = skimage.io.imread(str(path))
+        raw = _decode_png(path) if suffix == ".png" else _decode_other(path)
     except Exception as error:
         raise InputError(path, f"not a readable image ({type(error).__name__}: {error})") from None
     if raw.dtype == np.uint8:
@@ -104,6 +100,24 @@ def read_image(path: str | os.PathLike, *, srgb: bool = True) -> np.ndarray:
         image = image.copy()
         image[..., :color] = np.asarray(srgb_to_linear(image[..., :color]))
     return image
+
+
+def _decode_png(path: Path) -> np.ndarray:
+    """PNG pixels in their integer type. Pillow (behind scikit-image) truncates 16-bit RGB PNGs
+    to 8 bits, so libpng through imagecodecs is used when it is installed."""
+    try:
+        import imagecodecs
+    except ImportError:
+        return _decode_other(path)
+    return imagecodecs.png_decode(path.read_bytes())
+
+
+def _decode_other(path: Path) -> np.ndarray:
+    import skimage.io
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return skimage.io.imread(str(path))
 
 
 def write_png(path: str | os.PathLike, image: np.ndarray, *, srgb: bool = True, bits: int = 8) -> Path:
@@ -129,7 +143,12 @@ def write_png(path: str | os.PathLike, image: np.ndarray, *, srgb: bool = True, 
     else:
         raise ValueError("PNG bits must be 8 or 16")
     with atomic_path(Path(path).with_suffix(".png") if Path(path).suffix == "" else path) as tmp:
-        skimage.io.imsave(str(tmp), out, check_contrast=False)
+        try:  # libpng through imagecodecs: Pillow cannot write (or read) 16-bit RGB PNG
+            import imagecodecs
+
+            tmp.write_bytes(imagecodecs.png_encode(out))
+        except ImportError:
+            skimage.io.imsave(str(tmp), out, check_contrast=False)
     return Path(path)
 
 
