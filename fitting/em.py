@@ -28,12 +28,22 @@ node is the mean of e over R, G, B.
 
 EM and the 1-or-2 rule
 ----------------------
-`em_fit` is plain weighted EM for a mixture of K Gaussians with diagonal covariances in (x, y)
-(i.e. along the sample's x and y axes, which are the lobes' T and B up to the tilt), a variance
-floor of SIGMA_FLOOR^2 / 2, a fixed maximum number of iterations and a convergence check
-(|change of the weighted mean log-likelihood| < tol). It is initialized from the children's lobes:
-the most energetic child lobe, and the child lobe maximizing energy x squared normalized distance
-from it.
+`em_fit` is weighted EM for a mixture of K Gaussians with diagonal covariances in (x, y) (i.e.
+along the sample's x and y axes, which are the lobes' T and B up to the tilt), a variance floor
+of SIGMA_FLOOR^2 / 2, a fixed maximum number of iterations and a convergence check (|change of
+the weighted mean log-likelihood| < tol). On plain samples it is the textbook EM (checked against
+scikit-learn). For a texel the samples are grouped by child lobe: the E-step gives all nodes of
+one child lobe the same responsibility, from their weighted mean log-density (the expected
+log-density under the child lobe, exact with Gauss-Hermite nodes since log N is quadratic), and
+the M-step is the ordinary weighted one over the nodes (whose moments are the child lobes').
+This is hierarchical EM (Vasconcelos and Lippman) with VIRTUAL = 16 virtual samples per child
+lobe: the group's expected log-density is multiplied by 16 before the softmax over components,
+which sharpens the lobe-to-component assignment (with 1 the soft assignment lets both
+components collapse onto the moment match where the lobes form two close clusters). Without
+grouping, EM overfits the 3x3 node lattice (e.g. a narrow component on the central row of nodes),
+a likelihood optimum of the nodes but not a good summary of the lobes. The EM runs only for texels whose one-
+lobe summary is not good enough (below), initialized from the most energetic child lobe and the
+child lobe maximizing energy x squared normalized distance from it.
 
 Plain EM never drives a weight to 0, so the number of lobes is chosen by an L2 rule. Let p be the
 children's slope density (each child lobe as the Gaussian of its transported nodes' moments, with
@@ -82,6 +92,7 @@ __all__ = ["GaussianMixture", "EMInfo", "em_fit", "weighted_log_likelihood", "mo
 
 ONE_LOBE_TOLERANCE = 0.01  # relative ISE of the one-lobe summary above which a second lobe is considered
 TWO_LOBE_GAIN = 0.5        # the two-lobe fit must at least halve the one-lobe ISE
+VIRTUAL = 16.0             # virtual samples per child lobe in the texel E-step (hierarchical EM)
 DEFAULT_ORDER = 3          # Gauss-Hermite nodes per axis and child lobe (exact moments up to degree 5)
 DEFAULT_ITERATIONS = 50
 VAR_FLOOR = 0.5 * SIGMA_FLOOR**2  # the slope variance of the narrowest lobe the BRDF represents
@@ -113,72 +124,100 @@ class EMInfo(eqx.Module):
 # Plain weighted EM for a diagonal Gaussian mixture (one texel's samples)
 
 
-def _log_components(x: Float[Array, "S 2"], gmm: GaussianMixture) -> Float[Array, "S K"]:
-    d = x[:, None, :] - gmm.means[None, :, :]
-    var = gmm.variances[None, :, :]
-    log_n = -0.5 * jnp.sum(jnp.log(2 * jnp.pi * var) + d * d / var, axis=-1)
-    log_w = jnp.log(jnp.maximum(gmm.weights, _TINY))
-    return log_n + log_w[None, :]
+def _log_components(x: Float[Array, "G Q 2"], gmm: GaussianMixture) -> Float[Array, "G Q K"]:
+    d = x[:, :, None, :] - gmm.means[None, None, :, :]
+    var = gmm.variances[None, None, :, :]
+    return -0.5 * jnp.sum(jnp.log(2 * jnp.pi * var) + d * d / var, axis=-1)
 
 
-def _e_step(x, gmm):
-    log_p = _log_components(x, gmm)
+def _group_weights(w: Float[Array, "G Q"]) -> tuple[Array, Array]:
+    mass = jnp.sum(w, axis=1)
+    return mass, w / jnp.maximum(mass, _TINY)[:, None]
+
+
+def _e_step(x, w, gmm, virtual=1.0):
+    """Responsibilities per group (G K) from the group's mean log-density (times `virtual`), and
+    log sum_k per group."""
+    _, qn = _group_weights(w)
+    expected = virtual * jnp.einsum("gq,gqk->gk", qn, _log_components(x, gmm))
+    log_p = expected + jnp.log(jnp.maximum(gmm.weights, _TINY))[None, :]
     lse = jax.scipy.special.logsumexp(log_p, axis=1)
     return jnp.exp(log_p - lse[:, None]), lse
 
 
 def _m_step(x, w, resp, old: GaussianMixture, var_floor) -> GaussianMixture:
-    rw = resp * w[:, None]                                   # S K
-    n = jnp.sum(rw, axis=0)                                  # K
+    rw = resp[:, None, :] * w[:, :, None]                    # G Q K
+    n = jnp.sum(rw, axis=(0, 1))                             # K
     alive = n > _TINY
     safe_n = jnp.where(alive, n, 1.0)
-    means = jnp.einsum("sk,sd->kd", rw, x) / safe_n[:, None]
-    d = x[:, None, :] - means[None, :, :]
-    var = jnp.einsum("sk,skd->kd", rw, d * d) / safe_n[:, None]
+    means = jnp.einsum("gqk,gqd->kd", rw, x) / safe_n[:, None]
+    d = x[:, :, None, :] - means[None, None, :, :]
+    var = jnp.einsum("gqk,gqkd->kd", rw, d * d) / safe_n[:, None]
     var = jnp.maximum(var, var_floor)
     means = jnp.where(alive[:, None], means, old.means)
     var = jnp.where(alive[:, None], var, old.variances)
-    return GaussianMixture(n / jnp.sum(n), means, var)
+    return GaussianMixture(n / jnp.maximum(jnp.sum(n), _TINY), means, var)
 
 
-def weighted_log_likelihood(x: Float[Array, "S 2"], w: Float[Array, " S"], gmm: GaussianMixture) -> Float[Array, ""]:
-    """sum_i w_i log sum_k pi_k N(x_i; mu_k, diag var_k) / sum_i w_i."""
-    _, lse = _e_step(x, gmm)
-    return jnp.sum(w * lse) / jnp.sum(w)
+def _grouped(x, w):
+    x = jnp.asarray(x)
+    w = jnp.asarray(w, dtype=x.dtype)
+    if x.ndim == 2:  # plain samples: every sample its own group
+        return x[:, None, :], w[:, None]
+    return x, w
 
 
-def em_fit(x: Float[Array, "S 2"], w: Float[Array, " S"], init: GaussianMixture, *,
-           iterations: int = DEFAULT_ITERATIONS, tol: float | None = None,
-           var_floor: float = VAR_FLOOR) -> tuple[GaussianMixture, Float[Array, ""], Int[Array, ""], Bool[Array, ""]]:
-    """Weighted EM from `init`: at most `iterations` E+M steps, stopping once the weighted mean
-    log-likelihood changes by less than `tol` (default 1e-5 in float32, 1e-10 in float64).
+def weighted_log_likelihood(x: Float[Array, "S 2"] | Float[Array, "G Q 2"], w: Float[Array, " S"] | Float[Array, "G Q"],
+                            gmm: GaussianMixture) -> Float[Array, ""]:
+    """sum_i w_i log sum_k pi_k N(x_i; mu_k, diag var_k) / sum_i w_i for plain samples (`S 2`);
+    for grouped samples (`G Q 2`) the per-group terms use the group's weighted mean log-density."""
+    x, w = _grouped(x, w)
+    mass, _ = _group_weights(w)
+    _, lse = _e_step(x, w, gmm)
+    return jnp.sum(mass * lse) / jnp.maximum(jnp.sum(mass), _TINY)
+
+
+def em_fit(x: Float[Array, "S 2"] | Float[Array, "G Q 2"], w: Float[Array, " S"] | Float[Array, "G Q"],
+           init: GaussianMixture, *, iterations: int = DEFAULT_ITERATIONS, tol: float | None = None,
+           var_floor: float = VAR_FLOOR, run: Bool[Array, ""] | bool = True, virtual: float = 1.0,
+           ) -> tuple[GaussianMixture, Float[Array, ""], Int[Array, ""], Bool[Array, ""]]:
+    """Weighted EM for a diagonal Gaussian mixture from `init`: at most `iterations` E+M steps,
+    stopping once the weighted mean log-likelihood changes by less than `tol` (default 1e-5 in
+    float32, 1e-10 in float64); `run=False` returns `init` (lets a vmapped caller skip texels).
+
+    Plain samples `S 2` (weights `S`): the textbook EM (as scikit-learn's, with weights).
+    Grouped samples `G Q 2` (weights `G Q`): the nodes of one group (a child lobe's quadrature
+    nodes) share one responsibility, computed from the group's weighted mean log-density, which
+    is the expected log-density under the child lobe, multiplied by `virtual` (hierarchical EM with `virtual` virtual samples per group):
+    a lobe is never split between components, and EM cannot overfit the node lattice.
 
     Returns (mixture, weighted mean log-likelihood of the returned mixture, iterations, converged).
     Zero-weight samples are ignored; a component that loses all its mass keeps its mean and
     variance with weight 0 (no NaN). Vmap it over texels.
     """
-    x = jnp.asarray(x)
-    w = jnp.asarray(w, dtype=x.dtype)
+    x, w = _grouped(x, w)
     w = w / jnp.maximum(jnp.sum(w), _TINY)
+    mass, _ = _group_weights(w)
     if tol is None:
         tol = 1e-5 if x.dtype == jnp.float32 else 1e-10
     init = jax.tree.map(lambda a: jnp.asarray(a, dtype=x.dtype), init)
+    run = jnp.asarray(run)
 
     def cond(state):
         i, _, previous, current = state
-        return (i < iterations) & ~(jnp.abs(current - previous) < tol)
+        return run & (i < iterations) & ~(jnp.abs(current - previous) < tol)
 
     def body(state):
         i, gmm, _, current = state
-        resp, lse = _e_step(x, gmm)
+        resp, lse = _e_step(x, w, gmm, virtual)
         new = _m_step(x, w, resp, gmm, var_floor)
-        return i + 1, new, current, jnp.sum(w * lse)
+        return i + 1, new, current, jnp.sum(mass * lse)
 
     inf = jnp.asarray(jnp.inf, dtype=x.dtype)
     state = (jnp.zeros((), jnp.int32), init, -inf, inf)  # |inf - -inf| is never below tol: at least one step
     i, gmm, previous, current = jax.lax.while_loop(cond, body, state)
     converged = jnp.abs(current - previous) < tol
-    return gmm, jnp.sum(w * _e_step(x, gmm)[1]), i, converged
+    return gmm, jnp.sum(mass * _e_step(x, w, gmm, virtual)[1]), i, converged
 
 
 def moment_match(x: Float[Array, "S 2"], w: Float[Array, " S"], *, var_floor: float = VAR_FLOOR) -> GaussianMixture:
@@ -290,13 +329,15 @@ def em_texel(children: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: int 
     init = GaussianMixture(jnp.full((2,), 0.5, x.dtype), jnp.stack([mu[j1], mu[j2]]), jnp.stack([var[j1], var[j2]]))
     hs, xs, ws, es = (h.reshape(n_lobes * n_nodes, 3), x.reshape(n_lobes * n_nodes, 2),
                       w.reshape(n_lobes * n_nodes), e.reshape(n_lobes * n_nodes, 3))
-    gmm, loglik, n_iter, converged = em_fit(xs, ws, init, iterations=iterations, tol=tol)
     one = moment_match(xs, ws)
     error_one = _relative_ise(p, (one.weights, one.means, one.variances))
+    # EM only where one lobe is not enough (in a vmapped batch the others stop at once).
+    gmm, loglik, n_iter, converged = em_fit(x, w, init, iterations=iterations, tol=tol,
+                                            run=error_one > ONE_LOBE_TOLERANCE, virtual=VIRTUAL)
     error_two = _relative_ise(p, (gmm.weights, gmm.means, gmm.variances))
     two = (error_one > ONE_LOBE_TOLERANCE) & (error_two < TWO_LOBE_GAIN * error_one)
 
-    resp, _ = _e_step(xs, gmm)
+    resp = jnp.repeat(_e_step(x, w, gmm, VIRTUAL)[0], n_nodes, axis=0)   # S K: a lobe's nodes share theirs
     k0 = jnp.argmax(gmm.weights)  # lobe 0 = the heavier component
     k1 = 1 - k0
     # The three candidate lobes (major, minor, single) in one vmapped conversion.

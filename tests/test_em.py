@@ -43,7 +43,7 @@ SEPARATED_RTOL = 1e-2
 FLOAT32_TOLERANCE = 1e-4
 
 # One compiled EM per sample count and static settings, shared by the tests below.
-em_fit_jit = jax.jit(em_fit, static_argnames=("iterations", "tol", "var_floor"))
+em_fit_jit = jax.jit(em_fit, static_argnames=("iterations", "tol", "var_floor", "virtual"))
 CONVERGED = dict(iterations=2000, tol=1e-12, var_floor=1e-12)
 FIXED = dict(iterations=10, tol=0.0)
 
@@ -116,6 +116,36 @@ def test_em_jit_equals_no_jit():
         plain = em_fit(x, w, _init(), **FIXED)
     for a, b in zip(jax.tree.leaves(jitted), jax.tree.leaves(plain)):
         np.testing.assert_allclose(a, b, rtol=1e-10)
+
+
+def test_grouped_em_equals_closed_form_hierarchical_em():
+    """Grouped samples (Gauss-Hermite nodes of 6 Gaussians) vs hierarchical EM written with the
+    closed-form expectation E_j[log N_k] = log N_k(mu_j) - sum_d v_jd / (2 v_kd) in numpy."""
+    rng = np.random.default_rng(5)
+    mu = rng.uniform(-0.4, 0.4, (6, 2))
+    var = rng.uniform(0.002, 0.02, (6, 2))
+    mass = rng.uniform(0.5, 1.5, 6)
+    nodes, weights = np.polynomial.hermite.hermgauss(3)
+    a, b = np.meshgrid(nodes, nodes, indexing="ij")
+    q = np.outer(weights, weights).ravel() / np.pi
+    x = mu[:, None, :] + np.sqrt(2 * var)[:, None, :] * np.stack([a.ravel(), b.ravel()], -1)[None]
+    w = mass[:, None] * q[None, :]
+    init = GaussianMixture(jnp.array([0.5, 0.5]), jnp.asarray(mu[[0, 3]]), jnp.asarray(var[[0, 3]]))
+    virtual = 4.0
+    gmm, _, _, _ = em_fit_jit(x, w, init, iterations=8, tol=0.0, virtual=virtual)
+    pi, m, v = np.array([0.5, 0.5]), mu[[0, 3]].copy(), var[[0, 3]].copy()
+    for _ in range(8):
+        logn = -0.5 * np.sum(np.log(2 * np.pi * v)[None] + ((mu[:, None] - m[None]) ** 2 + var[:, None]) / v[None], -1)
+        logp = virtual * logn + np.log(pi)[None]
+        r = np.exp(logp - logp.max(1, keepdims=True))
+        r = r / r.sum(1, keepdims=True) * mass[:, None]
+        n = r.sum(0)
+        pi = n / n.sum()
+        m = (r.T @ mu) / n[:, None]
+        v = np.einsum("jk,jkd->kd", r, (mu[:, None] - m[None]) ** 2 + var[:, None]) / n[:, None]
+    np.testing.assert_allclose(gmm.weights, pi, rtol=1e-10)
+    np.testing.assert_allclose(gmm.means, m, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(gmm.variances, v, rtol=1e-10)
 
 
 def test_moment_match_is_the_one_component_maximum():

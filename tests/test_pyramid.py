@@ -82,7 +82,6 @@ def test_two_lobe_level_renders_like_its_children():
     wi, wo = light_view_pairs(k2)
     assert wi.shape[0] > 1000  # enough pairs survive the angle cut to make the norms meaningful
     err = rendering_errors(children, wi, wo)
-    print(wi.shape, err)
     assert err["em"] <= EM_VS_MIP_RATIO * err["mip"], err
     assert err["em"] < err["moment"], err
 
