@@ -230,6 +230,7 @@ def direction_to_envmap_uv(dirs: Float[ArrayLike, "... 3"]) -> Float[Array, "...
     return jnp.stack([u, v], axis=-1)
 
 
+@functools.partial(jax.jit, static_argnames=("width", "height", "samples", "light_samples", "sun_disk"))
 def sky_envmap(sun_dir: Float[ArrayLike, "3"], *, width: int = 256, height: int = 128,
                sun_intensity: float = 20.0, samples: int = 16, light_samples: int = 8, altitude: float = 1.0,
                atmosphere: Atmosphere = Atmosphere(), sun_disk: bool = False) -> Float[Array, "H W 3"]:
@@ -237,7 +238,8 @@ def sky_envmap(sun_dir: Float[ArrayLike, "3"], *, width: int = 256, height: int 
 
     With `sun_disk`, the sun's attenuated irradiance E_sun T is put into the texel nearest to
     the sun direction (radiance E_sun T / texel solid angle), so the map carries the sun's energy
-    whatever its resolution; a sun below the horizon adds nothing.
+    whatever its resolution; a sun below the horizon adds nothing. Jitted (sizes, sample counts
+    and the disk switch static).
     """
     dirs = envmap_directions(width, height)
     radiance = _envmap_radiance(dirs, jnp.asarray(sun_dir, dirs.dtype), sun_intensity, samples, light_samples,
@@ -254,7 +256,8 @@ def sky_envmap(sun_dir: Float[ArrayLike, "3"], *, width: int = 256, height: int 
         tr, tm = optical_depth(s, altitude=altitude, samples=samples * 4, atmosphere=atmosphere)
         beta_r = jnp.asarray(atmosphere.rayleigh_scattering, dirs.dtype)
         t_view = jnp.exp(-(beta_r * tr + atmosphere.mie_extinction * tm))
-        above = (s[1] > -math.sqrt(altitude * (2 * atmosphere.earth_radius + altitude)) / atmosphere.earth_radius)
+        _, c_earth, b = _view_segment(s, altitude, atmosphere)
+        above = jnp.logical_not((b < 0.0) & (b * b - c_earth > 0.0))  # the sun ray misses the Earth
         radiance = radiance.at[row, col].add(sun_intensity * t_view / texel_solid * above.astype(dirs.dtype))
     return radiance
 

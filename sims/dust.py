@@ -62,6 +62,7 @@ def init_dust(key: Array, n_particles: int, dune_shape: tuple[int, int], *, dtyp
     return u * jnp.array([w, h], dtype)[None, :]
 
 
+@functools.partial(jax.jit, static_argnames=("ripple_tiling",))
 def dust_sizes(xy: Float[Array, "... 2"], ripple_height: Float[Array, "h w"], *, ripple_tiling: float = 1.0,
                size_scale: ArrayLike = 0.5) -> Float[Array, "..."]:
     """Billboard size at dune positions: size_scale (r - min r) / (max r - min r) of the ripple

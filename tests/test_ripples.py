@@ -115,8 +115,9 @@ def test_batch_and_vmap_equal_loop():
 def test_gradient_wrt_hop_parameters_vs_central_differences():
     h0 = init_ripples(jax.random.key(6), (8, 10))
 
+    @jax.jit
     def loss(L0, b, q):
-        h = simulate_ripples(h0, RippleParams(L0=L0, b=b, q=q), steps=6)
+        h = simulate_ripples(h0, RippleParams(L0=L0, b=b, q=q), steps=5)
         return jnp.sum(jnp.sin(h) * jnp.arange(h.size, dtype=h.dtype).reshape(h.shape) / h.size)
 
     args = (jnp.array(3.37), jnp.array(1.21), jnp.array(0.43))
