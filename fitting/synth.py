@@ -26,7 +26,6 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from jaxrender.brdf import MODELS, BTFTexel, Lobe, reflectance
 from jaxrender.io import InputError, atomic_path, linear_to_srgb, write_btf, write_exr, write_png
-from jaxrender.textures import quantize
 
 from .hdr import Observations, observations_from_batches, observe
 
@@ -64,9 +63,11 @@ LIGHT_DIRECTIONS = paper_light_directions()
 def stratified_light_subset(key: PRNGKeyArray, n: int) -> np.ndarray:
     """Sorted indices of `n` of the 2160 paper directions, stratified over the hemisphere.
 
-    Each theta ring gets a share of `n` proportional to its solid angle (at most its 72
-    directions; largest remainders first), and within a ring the chosen directions are one
-    random phi from each of equal consecutive phi strata. `n` >= 2160 gives all directions.
+    Each theta ring gets a share of `n` proportional to its solid angle (jittered systematic
+    sampling of the cumulative solid angle, so counts are within two of the share and a small `n`
+    spreads over elevations; for dense subsets capped proportional shares, at most 72 a ring), and
+    within a ring the chosen directions are one random phi from each of equal consecutive phi
+    strata. `n` >= 2160 gives all directions. Deterministic in `key`.
     """
     total = len(PAPER_THETAS_DEG) * len(PAPER_PHIS_DEG)
     if n >= total:
@@ -77,11 +78,12 @@ def stratified_light_subset(key: PRNGKeyArray, n: int) -> np.ndarray:
     edges = np.radians(np.clip(np.concatenate([PAPER_THETAS_DEG - 1.5, [PAPER_THETAS_DEG[-1] + 1.5]]), 0, 90))
     area = np.cos(edges[:-1]) - np.cos(edges[1:])
     share = area / area.sum()
-    k_rings, key = jax.random.split(key)
+    # Host-side set-up: a numpy generator seeded by the key's bits (cheaper than tracing jax.random).
+    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).ravel().tolist())
     if n * share.max() + 1 <= per_ring:
-        # Jittered systematic sampling of the cumulative solid angle: ring counts within one of
+        # Jittered systematic sampling of the cumulative solid angle: ring counts within two of
         # n * share, and small n spread over all elevations.
-        u = (np.arange(n) + np.asarray(jax.random.uniform(k_rings, (n,)))) / n
+        u = (np.arange(n) + rng.uniform(size=n)) / n
         rings = np.minimum(np.searchsorted(np.cumsum(share), u, side="right"), len(share) - 1)
         counts = np.bincount(rings, minlength=len(share))
     else:  # dense subsets: proportional shares capped at 72 per ring, largest remainders first
@@ -97,14 +99,13 @@ def stratified_light_subset(key: PRNGKeyArray, n: int) -> np.ndarray:
                 add = np.minimum(add, per_ring - counts)
             counts += add
             remaining = n - counts.sum()
-    ring_keys = jax.random.split(key, len(counts))
     chosen = []
-    for ring, (count, ring_key) in enumerate(zip(counts, ring_keys, strict=True)):
+    for ring, count in enumerate(counts):
         if count == 0:
             continue
         bounds = np.linspace(0, per_ring, count + 1)
         lo, hi = np.ceil(bounds[:-1]).astype(int), np.ceil(bounds[1:]).astype(int)
-        u = np.asarray(jax.random.uniform(ring_key, (count,)))
+        u = rng.uniform(size=count)
         pick = np.minimum(lo + np.floor(u * (hi - lo)).astype(int), hi - 1)
         chosen.append(ring * per_ring + pick)
     return np.sort(np.concatenate(chosen))
@@ -126,7 +127,7 @@ class Sensor(eqx.Module):
     read_noise: float = 10.0
     noise: float = 1.0
     vignette: float = 0.25
-    bits: int = eqx.field(static=True, default=8)
+    bits: int = 8
     response: str = eqx.field(static=True, default="linear")
 
     def __check_init__(self):
@@ -134,6 +135,8 @@ class Sensor(eqx.Module):
             raise ValueError("bits must be 8, 16 or 0 (float)")
         if self.response not in ("linear", "srgb"):
             raise ValueError(f"unknown response {self.response!r}")
+        if self.response == "srgb" and self.bits == 0:
+            raise ValueError("float (EXR) codes are linear: the sRGB response needs 8 or 16 bits")
 
     def replace(self, **changes) -> "Sensor":
         """A copy with some settings changed."""
@@ -253,11 +256,12 @@ def _expose(key, radiance_rel, exposures, sensor: Sensor):
     shot = jnp.sqrt(electrons) * z[0]
     read = sensor.read_noise * z[1]
     noisy = jnp.clip(linear + sensor.noise * (shot + read) / sensor.full_well, 0.0, 1.0)
-    if sensor.bits == 0:
-        return noisy
     if sensor.response == "srgb":
         noisy = linear_to_srgb(noisy).astype(dtype)
-    return quantize(noisy, sensor.bits)
+    # The ADC: round to 2^bits - 1 steps (bits = 0: float codes). A traced `bits`, so 8-bit,
+    # 16-bit and float captures share one compilation (textures.quantize needs a static one).
+    levels = jnp.exp2(jnp.asarray(sensor.bits).astype(dtype)) - 1
+    return jnp.where(levels > 0, jnp.round(noisy * levels) / jnp.maximum(levels, 1.0), noisy)
 
 
 @functools.partial(jax.jit, static_argnames=("model",))

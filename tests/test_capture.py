@@ -7,9 +7,7 @@ import json
 import numpy as np
 import pytest
 
-import fitting.hdr
 from fitting import Capture, CaptureError, load_capture, merge_capture
-from fitting.cli import main as fitting_main
 from jaxrender.io import InputError, write_exr, write_png
 
 SIZE = (4, 5)
@@ -198,33 +196,3 @@ def test_merge_capture_matches_reference(tmp_path, response):
     np.testing.assert_array_equal(np.asarray(obs.n_valid), n_valid)
     assert 0 < n_valid.sum() < n_valid.size * 3  # random codes: some valid, some flagged
     np.testing.assert_allclose(np.asarray(obs.light_dirs), capture.light_dirs, rtol=1e-6, atol=1e-7)
-
-
-def test_cli_synth_bad_input_exit_2_and_no_output(tmp_path, capsys, monkeypatch):
-    occupied = tmp_path / "occupied"
-    occupied.mkdir()
-    (occupied / "notes.txt").write_text("keep me")
-    assert fitting_main(["synth", str(occupied), "--size", "4", "4", "--lights", "3"]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and f"{occupied}: exists and is not an empty directory" in err
-    assert sorted(p.name for p in occupied.iterdir()) == ["notes.txt"]
-    with pytest.raises(SystemExit) as info:  # argparse: usage error, exit 2
-        fitting_main(["synth", str(tmp_path / "new"), "--lights", "0"])
-    assert info.value.code == 2
-
-    # A failure half-way leaves nothing behind (everything goes through a temporary directory).
-    import fitting.synth
-
-    calls = []
-
-    def failing_png(path, image, **kwargs):
-        calls.append(path)
-        if len(calls) > 4:
-            raise OSError("disk full")
-        return write_png(path, image, **kwargs)
-
-    monkeypatch.setattr(fitting.synth, "write_png", failing_png)
-    with pytest.raises(OSError):
-        fitting_main(["synth", str(tmp_path / "half"), "--size", "4", "4", "--lights", "3"])
-    assert list(tmp_path.iterdir()) == [occupied]
-    _ = fitting.hdr  # noqa: the merge module is imported by the capture tests above
