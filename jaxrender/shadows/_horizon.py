@@ -147,7 +147,7 @@ def horizon_map(height: Float[ArrayLike, "H W"], *, directions: int = 8, texel_s
         def round_body(state, k_lo=k_lo, k_hi=k_hi):
             best_flat, pending = state
             count = jnp.sum(pending)
-            idx = jnp.nonzero(pending, size=cap, fill_value=0)[0]
+            idx = jnp.nonzero(pending, size=cap, fill_value=0)[0].astype(jnp.int32)
             valid = jnp.arange(cap) < count
             d = idx // (rows * cols)
             y = (idx // cols) % rows

@@ -197,7 +197,7 @@ def shade_quads(maps: TerrainMaps, visible: Array, level: Array, sun: Sun, albed
             tiles.append(None)
             continue
         mask = vis & (lev == l)
-        ids = jnp.nonzero(mask, size=cap, fill_value=0)[0]
+        ids = jnp.nonzero(mask, size=cap, fill_value=0)[0].astype(jnp.int32)
         slot = jnp.where(mask, jnp.cumsum(mask.astype(jnp.int32)) - 1, slot)
         n = maps.texels // 2**l
         tiles.append(_shade_level(maps, ids, l, sun, albedo, sky, flags, max(1, texel_batch // (n * n))))
