@@ -1,0 +1,226 @@
+"""Fit a whole capture: chunks of texels, sharded over the local devices, checkpointed, resumable.
+
+`fit_capture(CAPTURE_DIR, BTF_DIR)` loads and validates the capture (nothing is written when it is
+malformed), merges the exposure brackets, fits every texel with `fitting.lm.fit_texels` in chunks
+of `chunk` texels (each chunk's texel axis sharded over all local JAX devices: `NamedSharding` on a 1-D mesh),
+and writes the BTF directory: level 0 through `jaxrender.io.write_btf` (`btf.json` last), PNG
+previews, then the EM pyramid (`fitting.pyramid.build_pyramid`, which rewrites `btf.json` last).
+
+Finished chunks are checkpointed in `BTF_DIR/.partial/` (one `.npz` per chunk, each written
+atomically, plus `config.json` naming the capture and settings). Rerunning on the same output
+resumes: chunks already there are loaded, the others fitted. Every chunk is fitted with the same
+padded shape whatever happened before, so a run killed with SIGKILL and resumed gives maps
+bit-identical to an uninterrupted one. `.partial/` is removed once the BTF is complete.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import os
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrender.io import atomic_path, write_btf, write_btf_previews
+
+from .lm import DEFAULT_MAX_STEPS, SOLVERS, TexelFit, default_tolerances, fit_texels
+
+__all__ = ["fit_capture", "fit_observations", "fit_maps", "level0_channels", "DEFAULT_CHUNK"]
+
+DEFAULT_CHUNK = 4096
+PARTIAL = ".partial"
+_FIELDS = ("rho_d", "rho_s", "normal", "sigma_x", "sigma_y", "residual", "cost", "converged", "num_steps", "n_valid")
+
+
+@functools.lru_cache(maxsize=None)
+def _sharded_fit(n_devices: int, model: str, solver: str, max_steps: int):
+    """`fit_texels` with the texel axis sharded over the first `n_devices` local devices.
+
+    A `NamedSharding` over a 1-D mesh; the partitioner splits the vmapped texel axis, so each
+    device runs its share of every chunk (the solver's loop ends when every texel is done).
+    (`jax.shard_map` is not used: optimistix/lineax structure checks reject its varying types.)
+    """
+    devices = np.asarray(jax.local_devices()[:n_devices])
+    mesh = jax.sharding.Mesh(devices, ("texels",))
+    shard = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("texels"))
+    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+
+    def fn(ratio, weight, light_dirs, view_dir):
+        return fit_texels(ratio, weight, light_dirs, view_dir, model=model, solver=solver, max_steps=max_steps)
+
+    return jax.jit(fn, in_shardings=(shard, shard, replicated, replicated), out_shardings=shard), shard
+
+
+def _chunk_fit(ratio, weight, light_dirs, view_dir, *, model, solver, max_steps) -> dict[str, np.ndarray]:
+    n_dev = jax.local_device_count()
+    fn, shard = _sharded_fit(n_dev, model, solver, max_steps)
+    ratio = jax.device_put(ratio, shard)
+    weight = jax.device_put(weight, shard)
+    out: TexelFit = fn(ratio, weight, jnp.asarray(light_dirs), jnp.asarray(view_dir))
+    return {name: np.asarray(getattr(out, name)) for name in _FIELDS}
+
+
+def _fingerprint(obs, settings: dict) -> str:
+    h = hashlib.sha256(json.dumps(settings, sort_keys=True).encode())
+    for x in (obs.light_dirs, obs.view_dir):
+        h.update(np.ascontiguousarray(np.asarray(x)).tobytes())
+    h.update(np.ascontiguousarray(np.asarray(obs.ratio)[..., :1, :]).tobytes())  # first light of every texel
+    h.update(str(tuple(obs.ratio.shape)).encode())
+    return h.hexdigest()
+
+
+def _prepare_partial(partial: Path, fingerprint: str) -> None:
+    config = partial / "config.json"
+    if partial.is_dir():
+        try:
+            same = json.loads(config.read_text()).get("fingerprint") == fingerprint
+        except (OSError, ValueError):
+            same = False
+        if not same:  # another capture or other settings: start again
+            shutil.rmtree(partial)
+    partial.mkdir(parents=True, exist_ok=True)
+    if not config.is_file():
+        with atomic_path(config) as tmp:
+            tmp.write_text(json.dumps({"fingerprint": fingerprint}))
+
+
+def _save_chunk(path: Path, result: dict[str, np.ndarray]) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **result)
+
+
+def _load_chunk(path: Path, count: int) -> dict[str, np.ndarray] | None:
+    try:
+        with np.load(path) as data:
+            out = {name: data[name] for name in _FIELDS}
+    except (OSError, ValueError, KeyError, EOFError):
+        return None  # unreadable: fit it again
+    if any(v.shape[0] != count for v in out.values()):
+        return None
+    return out
+
+
+def fit_maps(obs, *, solver: str = "optimistix", chunk: int = DEFAULT_CHUNK, max_steps: int = DEFAULT_MAX_STEPS,
+             model: str = "reciprocal", partial_dir: str | os.PathLike | None = None,
+             progress: bool | None = None, on_chunk: Callable[[int], object] | None = None) -> dict[str, np.ndarray]:
+    """Fit every texel of `Observations`; returns `H W ...` numpy maps of the `TexelFit` fields.
+
+    `partial_dir`: checkpoint finished chunks there and reuse the ones already present.
+    `progress`: None = a tqdm bar on a terminal only, False = never, True = always.
+    """
+    from tqdm.auto import tqdm
+
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}: use one of {SOLVERS}")
+    if chunk < 1 or max_steps < 1:
+        raise ValueError("chunk and max_steps must be >= 1")
+    h, w = obs.size
+    n_lights = obs.n_lights
+    total = h * w
+    ratio = np.asarray(obs.ratio).reshape(total, n_lights, 3)
+    weight = np.asarray(obs.weight).reshape(total, n_lights)
+    n_dev = jax.local_device_count()
+    padded = -(-min(chunk, total) // n_dev) * n_dev  # one shape for every chunk: one compilation
+    starts = list(range(0, total, chunk))
+    settings = {"solver": solver, "chunk": chunk, "max_steps": max_steps, "model": model,
+                "dtype": str(ratio.dtype)}
+    partial = None
+    if partial_dir is not None:
+        partial = Path(partial_dir)
+        _prepare_partial(partial, _fingerprint(obs, settings))
+    results: list[dict[str, np.ndarray]] = []
+    bar = tqdm(total=total, unit="texel", desc="fit", disable=None if progress is None else not progress,
+               smoothing=0.1)
+    converged = 0
+    for i, start in enumerate(starts):
+        count = min(chunk, total - start)
+        path = partial / f"chunk_{i:06d}.npz" if partial is not None else None
+        result = _load_chunk(path, count) if path is not None and path.is_file() else None
+        if result is None:
+            idx = np.minimum(np.arange(start, start + padded), start + count - 1)  # pad with the last texel
+            out = _chunk_fit(ratio[idx], weight[idx], obs.light_dirs, obs.view_dir, model=model, solver=solver,
+                             max_steps=max_steps)
+            result = {k: v[:count] for k, v in out.items()}
+            if path is not None:
+                _save_chunk(path, result)
+        results.append(result)
+        converged += int(np.sum(result["converged"]))
+        bar.update(count)
+        bar.set_postfix(converged=f"{converged / (start + count):.1%}", refresh=False)
+        if on_chunk is not None:
+            on_chunk(i)
+    bar.close()
+    maps = {name: np.concatenate([r[name] for r in results]) for name in _FIELDS}
+    return {name: v.reshape((h, w) + v.shape[1:]) for name, v in maps.items()}
+
+
+def level0_channels(maps: dict[str, np.ndarray], obs) -> dict[str, np.ndarray]:
+    """BTF level-0 channels (design.md names) of `fit_maps` output and the observation counts."""
+    c: dict[str, np.ndarray] = {}
+    for i, ch in enumerate("RGB"):
+        c[f"rho_d.{ch}"] = maps["rho_d"][..., i]
+        c[f"rho_s.{ch}"] = maps["rho_s"][..., i]
+    for i, ax in enumerate("XYZ"):
+        c[f"normal.{ax}"] = maps["normal"][..., i]
+    c["sigma_x"], c["sigma_y"] = maps["sigma_x"], maps["sigma_y"]
+    c["residual"] = maps["residual"]
+    c["converged"] = maps["converged"].astype(np.float32)
+    for name in ("n_valid", "n_saturated", "n_dark"):
+        c[name] = np.asarray(getattr(obs, name))
+    return {k: np.asarray(v, np.float32) for k, v in c.items()}
+
+
+def fit_observations(obs, btf_dir: str | os.PathLike, *, solver: str = "optimistix", chunk: int = DEFAULT_CHUNK,
+                     max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal", pyramid: bool = True,
+                     progress: bool | None = None, meta: dict | None = None) -> Path:
+    """Fit `Observations` into the BTF directory `btf_dir` (checkpointed and resumable)."""
+    btf_dir = Path(btf_dir)
+    partial = btf_dir / PARTIAL
+    t0 = time.perf_counter()
+    maps = fit_maps(obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model, partial_dir=partial,
+                    progress=progress)
+    fit_s = time.perf_counter() - t0
+    level0 = level0_channels(maps, obs)
+    rtol, atol = default_tolerances(np.asarray(obs.ratio).dtype)
+    info = {"fit": {"solver": solver, "method": "levenberg-marquardt, variable projection of rho_d, rho_s",
+                    "chunk": chunk, "max_steps": max_steps, "rtol": rtol, "atol": atol,
+                    "devices": jax.local_device_count(),
+                    "converged_fraction": float(np.mean(maps["converged"])),
+                    "median_residual": float(np.median(maps["residual"])),
+                    "median_steps": float(np.median(maps["num_steps"])), "seconds": round(fit_s, 3)}}
+    info.update(meta or {})
+    write_btf(btf_dir, [level0], model=model, meta=info)
+    write_btf_previews(btf_dir, level0)
+    if pyramid:
+        from .pyramid import build_pyramid
+
+        build_pyramid(btf_dir)
+    shutil.rmtree(partial, ignore_errors=True)
+    return btf_dir
+
+
+def fit_capture(capture_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, solver: str = "optimistix",
+                chunk: int = DEFAULT_CHUNK, max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal",
+                pyramid: bool = True, progress: bool | None = None) -> Path:
+    """Capture directory -> BTF directory (see the module docstring). Raises `InputError`
+    (`CaptureError`) for a malformed capture before anything is written."""
+    from .capture import load_capture
+    from .hdr import merge_capture
+
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}: use one of {SOLVERS}")
+    t0 = time.perf_counter()
+    capture = load_capture(capture_dir)
+    obs = merge_capture(capture, progress=progress)
+    merge_s = time.perf_counter() - t0
+    meta = {"capture": str(Path(capture_dir).resolve()), "merge_seconds": round(merge_s, 3)}
+    return fit_observations(obs, btf_dir, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
+                            pyramid=pyramid, progress=progress, meta=meta)
