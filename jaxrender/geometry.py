@@ -140,6 +140,255 @@ def intersect_quad(origin: Float[ArrayLike, "3"], direction: Float[ArrayLike, "3
     return jnp.where(ok, t, jnp.inf)
 
 
+def _soa(x: Array) -> tuple[Array, Array, Array]:
+    return x[..., 0], x[..., 1], x[..., 2]
+
+
+def _spheres_t_soa(o, d, spheres: Spheres, t_min: float) -> Array:
+    """(R, N) hit distances, rays as component tuples of (R, 1) arrays (structure of arrays:
+    XLA vectorizes these loops far better than reductions over a minor axis of size 3)."""
+    cx, cy, cz = (spheres.center[None, :, i] for i in range(3))
+    ocx, ocy, ocz = o[0] - cx, o[1] - cy, o[2] - cz
+    b = ocx * d[0] + ocy * d[1] + ocz * d[2]
+    c = ocx * ocx + ocy * ocy + ocz * ocz - spheres.radius[None, :] ** 2
+    disc = b * b - c
+    hit = disc > 0
+    root = jnp.sqrt(jnp.where(hit, disc, 1.0))
+    t0, t1 = -b - root, -b + root
+    t = jnp.where(t0 > t_min, t0, t1)
+    return jnp.where(hit & (t > t_min), t, jnp.inf)
+
+
+def _quads_t_soa(o, d, quads: Quads, t_min: float) -> Array:
+    c, u, v = quads.center, quads.u, quads.v
+    n = jnp.cross(u, v)
+    uu, vv, uv = dot(u, u), dot(v, v), dot(u, v)
+    det = uu * vv - uv * uv
+    inv_det = 1.0 / jnp.where(jnp.abs(det) > 1e-24, det, 1.0)
+    row = lambda x, i: x[None, :, i]  # noqa: E731
+    denom = d[0] * row(n, 0) + d[1] * row(n, 1) + d[2] * row(n, 2)
+    ok_denom = jnp.abs(denom) > 1e-12
+    dcx, dcy, dcz = row(c, 0) - o[0], row(c, 1) - o[1], row(c, 2) - o[2]
+    t = (dcx * row(n, 0) + dcy * row(n, 1) + dcz * row(n, 2)) / jnp.where(ok_denom, denom, 1.0)
+    px, py, pz = t * d[0] - dcx, t * d[1] - dcy, t * d[2] - dcz
+    pu = px * row(u, 0) + py * row(u, 1) + pz * row(u, 2)
+    pv = px * row(v, 0) + py * row(v, 1) + pz * row(v, 2)
+    a = (pu * vv[None, :] - pv * uv[None, :]) * inv_det[None, :]
+    b = (pv * uu[None, :] - pu * uv[None, :]) * inv_det[None, :]
+    ok = ok_denom & (t > t_min) & (jnp.abs(a) <= 1.0) & (jnp.abs(b) <= 1.0)
+    return jnp.where(ok, t, jnp.inf)
+
+
+def _group_t(o, d, group, t_min: float) -> Array:
+    if isinstance(group, Spheres):
+        return _spheres_t_soa(o, d, group, t_min)
+    return _quads_t_soa(o, d, group, t_min)
+
+
+def _closest_one(origin: Float[Array, "3"], direction: Float[Array, "3"], prims: Primitives):
+    """(t, normal, albedo) of the nearest hit of one ray; normal/albedo are 0 on a miss."""
+    best_t = jnp.asarray(jnp.inf, dtype=origin.dtype)
+    best_n = jnp.zeros(3, dtype=origin.dtype)
+    best_a = jnp.zeros(3, dtype=origin.dtype)
+    for group in prims:  # a handful of primitive kinds: unrolled
+        if group.count == 0:
+            continue
+        ts = group.intersect(origin, direction)
+        i = jnp.argmin(ts)
+        t = ts[i]
+        closer = t < best_t
+        safe_t = jnp.where(jnp.isfinite(t), t, 0.0)
+        n = group.normal(i, origin + safe_t * direction)
+        best_t = jnp.where(closer, t, best_t)
+        best_n = jnp.where(closer, n, best_n)
+        best_a = jnp.where(closer, group.albedo[i], best_a)
+    return best_t, best_n, best_a
+
+
+def closest_hit(origin: Float[ArrayLike, "3"], direction: Float[ArrayLike, "3"], prims: Primitives):
+    """Single-ray closest hit: (t, normal, albedo)."""
+    return _closest_one(jnp.asarray(origin), jnp.asarray(direction), prims)
+
+
+def cast_rays(origins: Float[ArrayLike, "*B 3"], dirs: Float[ArrayLike, "*B 3"], prims: Primitives
+              ) -> tuple[Float[Array, "*B"], Float[Array, "*B 3"], Float[Array, "*B 3"]]:
+    """Closest hit of every ray against a sequence of primitive groups (`Spheres`, `Quads`).
+
+    `origins` may be a single point (3,) shared by all rays; `dirs` unit vectors. Returns
+    (t, normal, albedo): t = inf and normal = albedo = 0 on a miss; the normal is the geometric
+    one (not flipped toward the ray). Same result as vmapping `closest_hit`, evaluated in a
+    structure-of-arrays layout for speed.
+    """
+    dirs = jnp.asarray(dirs)
+    origins = jnp.broadcast_to(jnp.asarray(origins, dtype=dirs.dtype), dirs.shape)
+    batch = dirs.shape[:-1]
+    fo, fd = origins.reshape((-1, 1, 3)), dirs.reshape((-1, 1, 3))
+    o, d = _soa(fo), _soa(fd)
+    best_t = jnp.full((fo.shape[0],), jnp.inf, dtype=dirs.dtype)
+    best_n = jnp.zeros((fo.shape[0], 3), dtype=dirs.dtype)
+    best_a = jnp.zeros((fo.shape[0], 3), dtype=dirs.dtype)
+    for group in prims:  # a handful of primitive kinds: unrolled
+        if group.count == 0:
+            continue
+        ts = _group_t(o, d, group, T_MIN)
+        i = jnp.argmin(ts, axis=1)
+        t = jnp.min(ts, axis=1)
+        closer = t < best_t
+        safe_t = jnp.where(jnp.isfinite(t), t, 0.0)
+        p = fo[:, 0, :] + safe_t[:, None] * fd[:, 0, :]
+        if isinstance(group, Spheres):
+            n = normalize(p - group.center[i])
+        else:
+            n = normalize(jnp.cross(group.u, group.v))[i]
+        best_t = jnp.where(closer, t, best_t)
+        best_n = jnp.where(closer[:, None], n, best_n)
+        best_a = jnp.where(closer[:, None], group.albedo[i], best_a)
+    return best_t.reshape(batch), best_n.reshape(batch + (3,)), best_a.reshape(batch + (3,))
+
+
+def occluded(origins: Float[ArrayLike, "*B 3"], dirs: Float[ArrayLike, "*B 3"], max_t: Float[ArrayLike, "*B"],
+             prims: Primitives, *, t_min: float = T_MIN) -> Float[Array, "*B"]:
+    """1.0 where something lies between t_min and max_t along the ray (shadow rays), else 0.0."""
+    dirs = jnp.asarray(dirs)
+    origins = jnp.broadcast_to(jnp.asarray(origins, dtype=dirs.dtype), dirs.shape)
+    max_t = jnp.broadcast_to(jnp.asarray(max_t, dtype=dirs.dtype), dirs.shape[:-1]).reshape((-1, 1))
+    o, d = _soa(origins.reshape((-1, 1, 3))), _soa(dirs.reshape((-1, 1, 3)))
+    hit = jnp.zeros((max_t.shape[0],), dtype=bool)
+    for group in prims:
+        if group.count == 0:
+            continue
+        hit = hit | jnp.any(_group_t(o, d, group, t_min) < max_t, axis=1)
+    return jnp.where(hit, 1.0, 0.0).astype(dirs.dtype).reshape(dirs.shape[:-1])
+
+
+def bounding_points(self) -> Float[Array, "M 3"]:
+        """Corners of each sphere's bounding box (8 per sphere)."""
+        signs = jnp.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
+        pts = self.center[:, None, :] + self.radius[:, None, None] * signs[None, :, :]
+        return pts.reshape((-1, 3))
+
+
+class Quads(eqx.Module):
+    """N parallelograms: `center` (N, 3), half-extent vectors `u`, `v` (N, 3), `albedo` (N, 3)."""
+
+    center: Float[Array, "N 3"]
+    u: Float[Array, "N 3"]
+    v: Float[Array, "N 3"]
+    albedo: Float[Array, "N 3"]
+
+    def __init__(self, center, u, v, albedo=None):
+        self.center = _as_rows(center, 3)
+        self.u = _as_rows(u, 3)
+        self.v = _as_rows(v, 3)
+        n = self.center.shape[0]
+        self.albedo = jnp.full((n, 3), 0.5) if albedo is None else _as_rows(albedo, 3)
+
+    @property
+    def count(self) -> int:
+        return self.center.shape[0]
+
+    def intersect(self, origin: Float[Array, "3"], direction: Float[Array, "3"]) -> Float[Array, "N"]:
+        return jax.vmap(intersect_quad, in_axes=(None, None, 0, 0, 0))(origin, direction, self.center, self.u, self.v)
+
+    def normal(self, index: Array, point: Float[Array, "3"]) -> Float[Array, "3"]:
+        return normalize(jnp.cross(self.u[index], self.v[index]))
+
+    def bounding_points(self) -> Float[Array, "M 3"]:
+        """The four corners of each quad."""
+        pts = [self.center + su * self.u + sv * self.v for su in (-1.0, 1.0) for sv in (-1.0, 1.0)]
+        return jnp.stack(pts, axis=1).reshape((-1, 3))
+
+
+Primitives = Sequence[Spheres | Quads]
+
+
+def intersect_sphere(origin: Float[ArrayLike, "3"], direction: Float[ArrayLike, "3"],
+                     center: Float[ArrayLike, "3"], radius: Float[ArrayLike, ""], *, t_min: float = T_MIN
+                     ) -> Float[Array, ""]:
+    """Nearest hit distance t > t_min of the ray origin + t * direction (direction unit length)
+    with one sphere; inf when missed. Gradient-safe at tangency and on misses."""
+    oc = jnp.asarray(origin) - jnp.asarray(center)
+    d = jnp.asarray(direction)
+    b = dot(oc, d)
+    c = dot(oc, oc) - jnp.asarray(radius) ** 2
+    disc = b * b - c
+    hit = disc > 0
+    root = jnp.sqrt(jnp.where(hit, disc, 1.0))
+    t0 = -b - root
+    t1 = -b + root
+    t = jnp.where(t0 > t_min, t0, t1)
+    ok = hit & (t > t_min)
+    return jnp.where(ok, t, jnp.inf)
+
+
+def intersect_quad(origin: Float[ArrayLike, "3"], direction: Float[ArrayLike, "3"], center: Float[ArrayLike, "3"],
+                   u: Float[ArrayLike, "3"], v: Float[ArrayLike, "3"], *, t_min: float = T_MIN) -> Float[Array, ""]:
+    """Hit distance of one ray with the parallelogram centre +- u +- v; inf when missed
+    (also for rays parallel to it)."""
+    o = jnp.asarray(origin)
+    d = jnp.asarray(direction)
+    c, u, v = jnp.asarray(center), jnp.asarray(u), jnp.asarray(v)
+    n = jnp.cross(u, v)
+    denom = dot(d, n)
+    ok_denom = jnp.abs(denom) > 1e-12
+    t = dot(c - o, n) / jnp.where(ok_denom, denom, 1.0)
+    p = o + t * d - c
+    # coordinates of p in the (u, v) basis (u, v need not be orthogonal)
+    uu, vv, uv = dot(u, u), dot(v, v), dot(u, v)
+    pu, pv = dot(p, u), dot(p, v)
+    det = uu * vv - uv * uv
+    safe_det = jnp.where(jnp.abs(det) > 1e-24, det, 1.0)
+    a = (pu * vv - pv * uv) / safe_det
+    b = (pv * uu - pu * uv) / safe_det
+    ok = ok_denom & (t > t_min) & (jnp.abs(a) <= 1.0) & (jnp.abs(b) <= 1.0)
+    return jnp.where(ok, t, jnp.inf)
+
+
+def _soa(x: Array) -> tuple[Array, Array, Array]:
+    return x[..., 0], x[..., 1], x[..., 2]
+
+
+def _spheres_t_soa(o, d, spheres: Spheres, t_min: float) -> Array:
+    """(R, N) hit distances, rays as component tuples of (R, 1) arrays (structure of arrays:
+    XLA vectorizes these loops far better than reductions over a minor axis of size 3)."""
+    cx, cy, cz = (spheres.center[None, :, i] for i in range(3))
+    ocx, ocy, ocz = o[0] - cx, o[1] - cy, o[2] - cz
+    b = ocx * d[0] + ocy * d[1] + ocz * d[2]
+    c = ocx * ocx + ocy * ocy + ocz * ocz - spheres.radius[None, :] ** 2
+    disc = b * b - c
+    hit = disc > 0
+    root = jnp.sqrt(jnp.where(hit, disc, 1.0))
+    t0, t1 = -b - root, -b + root
+    t = jnp.where(t0 > t_min, t0, t1)
+    return jnp.where(hit & (t > t_min), t, jnp.inf)
+
+
+def _quads_t_soa(o, d, quads: Quads, t_min: float) -> Array:
+    c, u, v = quads.center, quads.u, quads.v
+    n = jnp.cross(u, v)
+    uu, vv, uv = dot(u, u), dot(v, v), dot(u, v)
+    det = uu * vv - uv * uv
+    inv_det = 1.0 / jnp.where(jnp.abs(det) > 1e-24, det, 1.0)
+    row = lambda x, i: x[None, :, i]  # noqa: E731
+    denom = d[0] * row(n, 0) + d[1] * row(n, 1) + d[2] * row(n, 2)
+    ok_denom = jnp.abs(denom) > 1e-12
+    dcx, dcy, dcz = row(c, 0) - o[0], row(c, 1) - o[1], row(c, 2) - o[2]
+    t = (dcx * row(n, 0) + dcy * row(n, 1) + dcz * row(n, 2)) / jnp.where(ok_denom, denom, 1.0)
+    px, py, pz = t * d[0] - dcx, t * d[1] - dcy, t * d[2] - dcz
+    pu = px * row(u, 0) + py * row(u, 1) + pz * row(u, 2)
+    pv = px * row(v, 0) + py * row(v, 1) + pz * row(v, 2)
+    a = (pu * vv[None, :] - pv * uv[None, :]) * inv_det[None, :]
+    b = (pv * uu[None, :] - pu * uv[None, :]) * inv_det[None, :]
+    ok = ok_denom & (t > t_min) & (jnp.abs(a) <= 1.0) & (jnp.abs(b) <= 1.0)
+    return jnp.where(ok, t, jnp.inf)
+
+
+def _group_t(o, d, group, t_min: float) -> Array:
+    if isinstance(group, Spheres):
+        return _spheres_t_soa(o, d, group, t_min)
+    return _quads_t_soa(o, d, group, t_min)
+
+
 def _closest_one(origin: Float[Array, "3"], direction: Float[Array, "3"], prims: Primitives):
     """(t, normal, albedo) of the nearest hit of one ray; normal/albedo are 0 on a miss."""
     best_t = jnp.asarray(jnp.inf, dtype=origin.dtype)

@@ -58,7 +58,7 @@ def texel_directions(rotation: Float[ArrayLike, "3 3"], tan_cutoff: Float[ArrayL
     y, x = jnp.meshgrid(c, c, indexing="ij")
     local = jnp.stack([x * tan_cutoff, y * tan_cutoff, jnp.ones_like(x)], axis=-1)
     local = local / safe_norm(local)[..., None]
-    return local @ rotation
+    return sum(local[..., i:i + 1] * rotation[i][None, None, :] for i in range(3))
 
 
 def render_shadow_map(light: SpotLight, prims: Primitives, *, resolution: int = 1024) -> ShadowMap:
@@ -77,7 +77,8 @@ def shadow_uv_distance(sm: ShadowMap, points: Float[ArrayLike, "*B 3"]
     """(uv, distance to the light, in_front) of each point in the map's projection."""
     points = jnp.asarray(points)
     rel = points - jnp.broadcast_to(sm.position, points.shape)
-    local = rel @ sm.rotation.T
+    R = sm.rotation
+    local = jnp.stack([rel[..., 0] * R[i, 0] + rel[..., 1] * R[i, 1] + rel[..., 2] * R[i, 2] for i in range(3)], axis=-1)
     z = local[..., 2]
     front = z > 1e-9
     scale = 0.5 / (jnp.where(front, z, 1.0) * sm.tan_cutoff)

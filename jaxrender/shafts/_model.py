@@ -90,44 +90,58 @@ def cone_depth_range(light: SpotLight, reach: Float[ArrayLike, ""], eye: Float[A
     return lo, hi
 
 
-def cone_interval(origin: Float[ArrayLike, "3"], direction: Float[ArrayLike, "3"], apex: Float[ArrayLike, "3"],
+def _dot3(a, b):
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def cone_interval(origin: Float[ArrayLike, "3"], direction: Float[ArrayLike, "*B 3"], apex: Float[ArrayLike, "3"],
                   axis: Float[ArrayLike, "3"], cos_c: Float[ArrayLike, ""], reach: Float[ArrayLike, ""]
-                  ) -> tuple[Float[Array, ""], Float[Array, ""]]:
-    """[t0, t1] of ONE ray inside the cone (apex, unit axis, half-angle acos(cos_c) < 90 deg) cut by
-    the ball of radius `reach` around the apex; t0 >= t1 means the ray misses it. Branch-free:
-    the set is convex, so its ends are among the roots of the cone and ball quadratics; the
-    segments between sorted candidates whose midpoints lie inside form the interval."""
-    o, d = jnp.asarray(origin), jnp.asarray(direction)
-    w0 = o - jnp.asarray(apex)
-    a = jnp.asarray(axis)
+                  ) -> tuple[Float[Array, "*B"], Float[Array, "*B"]]:
+    """[t0, t1] of rays origin + t direction inside the cone (apex, unit axis, half-angle
+    acos(cos_c) < 90 deg) cut by the ball of radius `reach` around the apex; t0 == t1 = 0 when a
+    ray misses it. Branch-free and batched over `direction`: the set is convex, so its ends are
+    among the roots of the cone and ball quadratics; the segments between the sorted candidates
+    whose midpoints lie inside form the interval."""
+    d = jnp.asarray(direction)
+    w0 = jnp.broadcast_to(jnp.asarray(origin) - jnp.asarray(apex), d.shape)
+    a = jnp.broadcast_to(jnp.asarray(axis), d.shape)
     # ball |w0 + t d|^2 <= R^2
-    bb = jnp.sum(w0 * d)
-    cb = jnp.sum(w0 * w0) - reach * reach
+    bb = _dot3(w0, d)
+    ww = _dot3(w0, w0)
+    cb = ww - reach * reach
     disc_b = bb * bb - cb
     ball_hit = disc_b > 0
     rb = jnp.sqrt(jnp.where(ball_hit, disc_b, 1.0))
     b1, b2 = -bb - rb, -bb + rb
     # cone (w.a)^2 - c^2 |w|^2 = A t^2 + 2 B t + C
-    e, k = jnp.sum(d * a), jnp.sum(w0 * a)
+    e, k = _dot3(d, a), _dot3(w0, a)
     c2 = cos_c * cos_c
     A = e * e - c2
     B = e * k - c2 * bb
-    C = k * k - c2 * jnp.sum(w0 * w0)
+    C = k * k - c2 * ww
     disc_c = B * B - A * C
     cone_real = disc_c > 0
     rc = jnp.sqrt(jnp.where(cone_real, disc_c, 1.0))
     safe_A = jnp.where(jnp.abs(A) > 1e-12, A, 1e-12)
     r1 = jnp.where(cone_real, (-B - rc) / safe_A, b1)
     r2 = jnp.where(cone_real, (-B + rc) / safe_A, b1)
-    cands = jnp.sort(jnp.clip(jnp.stack([b1, r1, r2, b2]), b1, b2))
-    lo_c, hi_c = cands[:-1], cands[1:]
-    mid = 0.5 * (lo_c + hi_c)
-    w = w0[None, :] + mid[:, None] * d[None, :]
-    axial = w @ a
-    inside = (axial >= 0) & (axial * axial >= c2 * jnp.sum(w * w, axis=-1)) & (hi_c > lo_c) & ball_hit
-    t0 = jnp.min(jnp.where(inside, lo_c, jnp.inf))
-    t1 = jnp.max(jnp.where(inside, hi_c, -jnp.inf))
-    empty = ~jnp.any(inside)
+    c0, c1, c2_, c3 = (jnp.clip(x, b1, b2) for x in (b1, r1, r2, b2))
+    # sorting network for 4 values
+    c0, c1 = jnp.minimum(c0, c1), jnp.maximum(c0, c1)
+    c2_, c3 = jnp.minimum(c2_, c3), jnp.maximum(c2_, c3)
+    c0, c2_ = jnp.minimum(c0, c2_), jnp.maximum(c0, c2_)
+    c1, c3 = jnp.minimum(c1, c3), jnp.maximum(c1, c3)
+    c1, c2_ = jnp.minimum(c1, c2_), jnp.maximum(c1, c2_)
+    t0 = jnp.full_like(b1, jnp.inf)
+    t1 = jnp.full_like(b1, -jnp.inf)
+    for lo_c, hi_c in ((c0, c1), (c1, c2_), (c2_, c3)):
+        mid = 0.5 * (lo_c + hi_c)
+        axial = k + mid * e
+        wsq = ww + 2.0 * mid * bb + mid * mid  # |w0 + mid d|^2, d unit
+        inside = (axial >= 0) & (axial * axial >= c2 * wsq) & (hi_c > lo_c) & ball_hit
+        t0 = jnp.where(inside, jnp.minimum(t0, lo_c), t0)
+        t1 = jnp.where(inside, jnp.maximum(t1, hi_c), t1)
+    empty = t1 < t0
     return jnp.where(empty, 0.0, t0), jnp.where(empty, 0.0, t1)
 
 
@@ -137,10 +151,9 @@ def cone_intervals(scene: ShaftsScene, light: SpotLight, dirs: Float[Array, "*B 
     conservative bound: the integrand itself applies the exact cone), cut at the visible surface."""
     _, _, axis = light.frame()
     cos_c = jnp.cos(jnp.minimum(light.cutoff + margin, 0.5 * jnp.pi - 1e-3))
-    flat = dirs.reshape((-1, 3))
-    t0, t1 = jax.vmap(lambda d: cone_interval(scene.camera.eye, d, light.position, axis, cos_c, reach))(flat)
-    t0 = jnp.maximum(t0.reshape(dirs.shape[:-1]), 0.0)
-    t1 = jnp.minimum(t1.reshape(dirs.shape[:-1]), surface_t)
+    t0, t1 = cone_interval(scene.camera.eye, dirs, light.position, axis, cos_c, reach)
+    t0 = jnp.maximum(t0, 0.0)
+    t1 = jnp.minimum(t1, surface_t)
     return t0, jnp.maximum(t1, t0)
 
 

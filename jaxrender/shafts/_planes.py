@@ -39,6 +39,7 @@ from jaxtyping import Array, Float
 from .._math import safe_norm
 from ..geometry import cast_rays, hit_point
 from ..shadows._shadow_map import ShadowMap, render_shadow_map, shadow_test
+from ..lights._spot import atan_nonneg
 from ..textures import bilinear, quantize
 from ._model import FAR, S_FLOOR, attenuation_h, cone_depth_range, cone_intervals, light_reach, phase_cos, surface_term
 from ._raymarch import shadow_ray_visibility
@@ -67,6 +68,11 @@ def _interp_weights(n_pixels: int, cells: int) -> np.ndarray:
     return w
 
 
+def _dot(a: Array, b: Array) -> Array:
+    """a . b over the last axis, b one 3-vector (XLA's CPU matmul is slow for K = 3)."""
+    return a[..., 0] * b[0] + a[..., 1] * b[1] + a[..., 2] * b[2]
+
+
 def _angle(cos_a: Array, sin_a: Array) -> Array:
     return jnp.arctan2(sin_a, cos_a)
 
@@ -85,7 +91,7 @@ def _scatter_geometry(points: Array, dirs: Array, light_pos: Array) -> tuple[Arr
 
 def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, quantize_bits: int = 0,
                   mesh: tuple[int, int] = (15, 10), g_per_pixel: bool = False, tables: bool = True,
-                  tile: tuple[int, int] = (16, 32), prune: bool = True, surface_shadows: str = "map",
+                  tile: tuple[int, int] = (16, 32), plane_chunk: int = 6, prune: bool = True, surface_shadows: str = "map",
                   return_parts: bool = False
                   ) -> Float[Array, "H W 3"]:
     """Render `scene` (H, W, 3 linear RGB) with the sample-plane method (see module docstring).
@@ -93,8 +99,9 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
     planes, subplanes: n and m of the paper (default 30 x 6). quantize_bits: 0 = float, 8 = the
     paper's hardware. mesh: (cells across, cells down) of the texture-coordinate mesh (default 15 x 10).
     g_per_pixel / tables: skip the mesh interpolation / the tables (float mode only).
-    tile: (rows, cols) of the pruning tiles. prune: skip tiles outside every cone (the result is
-    the same either way). surface_shadows: "map" (shadow maps with a slope-scaled bias, as the
+    tile: (rows, cols) of the pruning tiles; plane_chunk: planes evaluated together (a chunk is
+    skipped on a tile when it misses the depth range of the tile's rays inside the cone).
+    prune: skip tiles and chunks outside the cone (the result is the same either way). surface_shadows: "map" (shadow maps with a slope-scaled bias, as the
     hardware does) or "rays" (exact shadow rays, as the ray march). return_parts: also return (surface, per-light in-scattering list).
     """
     if quantize_bits and (not tables or g_per_pixel):
@@ -109,7 +116,7 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
     _, _, forward = cam.frame()
     dirs = cam.primary_rays()
     dtype = dirs.dtype
-    cos_psi = dirs @ forward
+    cos_psi = _dot(dirs, forward)
     t_hit, normals, albedo = cast_rays(eye, dirs, scene.prims)
     points = hit_point(eye, dirs, t_hit, far=FAR)
     surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
@@ -189,12 +196,14 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
     vert_xy = jnp.stack(jnp.meshgrid(jnp.arange(mx + 1, dtype=dtype) * (W / mx),
                                      jnp.arange(my + 1, dtype=dtype) * (H / my), indexing="xy"), axis=-1)
     vert_dirs = cam.ray_direction(vert_xy)  # (my+1, mx+1, 3)
-    vert_cos = vert_dirs @ forward
+    vert_cos = _dot(vert_dirs, forward)
 
-    dirs_t = tiles_of(pad(dirs, None))
     cos_t = tiles_of(pad(cos_psi, None))
     surf_t = tiles_of(pad(surface_t, 0.0))
     sub = ((jnp.arange(subplanes, dtype=dtype) + 0.5) / subplanes - 0.5)
+    pc = max(1, min(plane_chunk, planes))  # planes per chunk
+    n_chunks = -(-planes // pc)
+    n_pad = n_chunks * pc
 
     per_light = []
     for index, light in enumerate(scene.lights):
@@ -202,74 +211,91 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
         reach = light_reach(scene, light)
         r_near, r_far = cone_depth_range(light, reach, eye, forward)
         dr = (r_far - r_near) / planes
-        r = r_near + (jnp.arange(planes, dtype=dtype) + 0.5) * dr  # (n,)
-        depths = r[:, None] + sub[None, :] * dr  # (n, m)
-        rotation = light.rotation()
-        local_eye = rotation @ (eye - light.position)
+        plane_ids = jnp.arange(n_pad)
+        r = r_near + (plane_ids.astype(dtype) + 0.5) * dr  # (n_pad,) planes past n are masked
+        plane_on = plane_ids < planes
+        depths = r[:, None] + sub[None, :] * dr  # (n_pad, m)
+        lx, ly, lz = light.frame()
+        rel_eye = eye - light.position
+        local_eye = jnp.stack([_dot(rel_eye, lx), _dot(rel_eye, ly), _dot(rel_eye, lz)])
+        local_dirs = jnp.stack([_dot(dirs, lx), _dot(dirs, ly), _dot(dirs, lz)], axis=-1)
         tan_c = jnp.tan(light.cutoff)
+        cut = light.cutoff
+        beam = jnp.minimum(light.beam_width, cut)
+        ramp_w = cut - beam
+        inv_ramp = jnp.where(ramp_w > 1e-9, 1.0 / jnp.where(ramp_w > 1e-9, ramp_w, 1.0), 0.0)
         lmap = light.quantized_map(B)
         map_max = jnp.max(lmap)
         uniform_map = lmap.shape[0] * lmap.shape[1] == 1
         lmap_n = lmap / map_max
         scale_rgb = light.intensity * map_max  # (3,)
-        depth_tex = jax.lax.stop_gradient(sm.depth)
+        depth_tex = jax.lax.stop_gradient(sm.depth).reshape((-1,))
         res = sm.resolution
         bias = settings.shadow_bias
 
-        if prune:
-            t0, t1 = cone_intervals(scene, light, dirs, surface_t, reach)
-            active_px = tiles_of(pad(t1 > t0, False))
-            active = jnp.any(active_px.reshape((active_px.shape[0], -1)), axis=1)
-        else:
-            active = jnp.ones((n_ty * n_tx,), dtype=bool)
+        t0, t1 = cone_intervals(scene, light, dirs, surface_t, reach)
+        if not prune:  # every pixel, every plane
+            t0, t1 = jnp.zeros_like(t0), jnp.full_like(t1, FAR)
+        t0_t = tiles_of(pad(t0 * cos_psi, 0.0))  # view-depth interval of each pixel inside the cone
+        t1_t = tiles_of(pad(t1 * cos_psi, 0.0))
+        ld_t = tiles_of(pad(local_dirs, None))
+        dirs_t = tiles_of(pad(dirs, None))
 
         if not g_per_pixel:
-            t_vert = r[:, None, None] / vert_cos[None, :, :]  # (n, my+1, mx+1)
+            t_vert = r[:, None, None] / vert_cos[None, :, :]  # (n_pad, my+1, mx+1)
             p_vert = eye[None, None, None, :] + t_vert[..., None] * vert_dirs[None, :, :, :]
             a_vert, s_vert = _scatter_geometry(p_vert, jnp.broadcast_to(vert_dirs, p_vert.shape), light.position)
-            grids = jnp.stack([a_vert, s_vert, t_vert], axis=0)  # (3, n, my+1, mx+1)
+            grids = jnp.stack([a_vert, s_vert, t_vert], axis=0)  # (3, n_pad, my+1, mx+1)
         else:
             grids = None
 
-        def tile_fn(args, light=light, r=r, dr=dr, depths=depths, rotation=rotation, local_eye=local_eye, tan_c=tan_c,
-                    lmap_n=lmap_n, uniform_map=uniform_map, scale_rgb=scale_rgb, depth_tex=depth_tex, res=res,
-                    grids=grids, bias=bias):
-            d, cpsi, st, row0, col0 = args
+        def chunk_fn(args, c, light=light, r=r, dr=dr, depths=depths, plane_on=plane_on, local_eye=local_eye,
+                      tan_c=tan_c, cut=cut, beam=beam, inv_ramp=inv_ramp, lmap_n=lmap_n, uniform_map=uniform_map,
+                      scale_rgb=scale_rgb, depth_tex=depth_tex, res=res, grids=grids, bias=bias):
+            """In-scattered light of planes [c*pc, (c+1)*pc) on one tile: (ty, tx, 3)."""
+            d, ld, cpsi, st, row0, col0 = args
             tau_unit = 1.0 / cpsi  # distance along the ray per unit depth
+            r_c = jax.lax.dynamic_slice_in_dim(r, c * pc, pc)
+            on_c = jax.lax.dynamic_slice_in_dim(plane_on, c * pc, pc)
+            depths_c = jax.lax.dynamic_slice_in_dim(depths, c * pc, pc, axis=0)
             # g per plane and pixel
             if grids is None:
-                t_pl = r[:, None, None] * tau_unit[None]
+                t_pl = r_c[:, None, None] * tau_unit[None]
                 p_pl = eye[None, None, None, :] + t_pl[..., None] * d[None]
                 a_pl, s_pl = _scatter_geometry(p_pl, jnp.broadcast_to(d, p_pl.shape), light.position)
             else:
                 wy = jax.lax.dynamic_slice_in_dim(wy_full, row0, ty, axis=0)
                 wx = jax.lax.dynamic_slice_in_dim(wx_full, col0, tx, axis=0)
-                interp = jnp.einsum("ya,knab,xb->knyx", wy, grids, wx)
+                grid_c = jax.lax.dynamic_slice_in_dim(grids, c * pc, pc, axis=1)
+                interp = jnp.einsum("ya,knab,xb->knyx", wy, grid_c, wx)
                 a_pl, s_pl, t_pl = interp[0], interp[1], interp[2]
-            g = g_of(a_pl, s_pl, t_pl)  # (n, ty, tx)
-            # sub-sample planes: H * I_l averaged into J
-            ld = d @ rotation.T  # (ty, tx, 3) local view directions
-            tau = depths[:, :, None, None] * tau_unit[None, None]  # (n, m, ty, tx)
-            loc = local_eye[None, None, None, None, :] + tau[..., None] * ld[None, None]
-            s2 = jnp.sum(loc * loc, axis=-1)
-            s = jnp.sqrt(jnp.maximum(s2, S_FLOOR * S_FLOOR))
-            z = loc[..., 2]
-            fall = light.falloff(loc)
+            g = g_of(a_pl, s_pl, t_pl)  # (pc, ty, tx)
+            # sub-sample planes: H * I_l averaged into J (component arithmetic, fused by XLA)
+            tau = depths_c[:, :, None, None] * tau_unit[None, None]  # (pc, m, ty, tx)
+            x = local_eye[0] + tau * ld[None, None, :, :, 0]
+            y = local_eye[1] + tau * ld[None, None, :, :, 1]
+            z = local_eye[2] + tau * ld[None, None, :, :, 2]
+            rxy2 = x * x + y * y
+            s = jnp.sqrt(jnp.maximum(rxy2 + z * z, S_FLOOR * S_FLOOR))
             front = z > 1e-9
-            inv = 0.5 / (jnp.where(front, z, 1.0) * tan_c)
-            u = 0.5 + loc[..., 0] * inv
-            v = 0.5 + loc[..., 1] * inv
+            safe_z = jnp.where(front, z, 1.0)
+            rxy_ok = rxy2 > 1e-30
+            rxy = jnp.where(rxy_ok, jnp.sqrt(jnp.where(rxy_ok, rxy2, 1.0)), 0.0)
+            theta = atan_nonneg(rxy / safe_z)
+            fall = jnp.where(theta <= beam, 1.0, (cut - theta) * inv_ramp)
+            inv = 0.5 / (safe_z * tan_c)
+            u = 0.5 + x * inv
+            v = 0.5 + y * inv
             col = jnp.clip(jnp.floor(u * res).astype(jnp.int32), 0, res - 1)
             row = jnp.clip(jnp.floor(v * res).astype(jnp.int32), 0, res - 1)
-            occ = depth_tex[row, col]
-            lit = (s <= occ + bias) | ~front
-            visible = tau < st[None, None]
-            weight = jnp.where(lit & visible, fall, 0.0)
+            occ = depth_tex[row * res + col]
+            ok = front & (theta < cut) & (s <= occ + bias) & (tau < st[None, None]) & on_c[:, None, None, None]
+            weight = jnp.where(ok, fall, 0.0)
             if uniform_map:
                 J = jnp.broadcast_to(jnp.mean(weight, axis=1)[..., None], weight.shape[:1] + weight.shape[2:] + (3,))
             else:
                 uv = jnp.stack([u, v], axis=-1)
-                J = jnp.mean(bilinear(lmap_n, uv) * weight[..., None], axis=1)  # (n, ty, tx, 3)
+                J = jnp.mean(bilinear(lmap_n, uv) * weight[..., None], axis=1)  # (pc, ty, tx, 3)
             if B:
                 J = quantize(J, B)
             dt = dr * tau_unit  # (ty, tx)
@@ -278,11 +304,30 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
                 contrib = quantize(contrib, B, scale=white)
             return jnp.sum(contrib, axis=0)
 
-        def maybe_tile(args, active_tile):
+        def tile_fn(args, r_near=r_near, dr=dr, chunk_fn=chunk_fn):
+            d, ld, cpsi, st, a0, a1, row0, col0 = args
+            active = a1 > a0
+            dmin = jnp.min(jnp.where(active, a0, jnp.inf))
+            dmax = jnp.max(jnp.where(active, a1, -jnp.inf))
             zeros = jnp.zeros((ty, tx, 3), dtype=dtype)
-            return jax.lax.cond(active_tile, lambda a: tile_fn(a), lambda a: zeros, args)
 
-        out = jax.lax.map(lambda a: maybe_tile(a[:-1], a[-1]), (dirs_t, cos_t, surf_t, tile_rows, tile_cols, active))
+            def body(acc, c):
+                lo = r_near + (c * pc).astype(dtype) * dr
+                hi = lo + pc * dr
+                on = (hi >= dmin) & (lo <= dmax)
+                part = jax.lax.cond(on, lambda cc: chunk_fn((d, ld, cpsi, st, row0, col0), cc), lambda cc: zeros, c)
+                return acc + part, None
+
+            acc, _ = jax.lax.scan(body, zeros, jnp.arange(n_chunks))
+            return acc
+
+        def maybe_tile(args, tile_fn=tile_fn):
+            a0, a1 = args[4], args[5]
+            active = jnp.any(a1 > a0)
+            zeros = jnp.zeros((ty, tx, 3), dtype=dtype)
+            return jax.lax.cond(active, tile_fn, lambda a: zeros, args)
+
+        out = jax.lax.map(maybe_tile, (dirs_t, ld_t, cos_t, surf_t, t0_t, t1_t, tile_rows, tile_cols))
         per_light.append(untile(out))
 
     image = frame + sum(per_light)
