@@ -12,6 +12,7 @@ noise in electrons, clipping at full well, an optional sRGB response and 8/16-bi
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
 import json
@@ -331,14 +332,18 @@ def synth_observations(key: PRNGKeyArray, texel_maps: BTFTexel, light_dirs: Floa
 # On disk
 
 
-def truth_level(texels: BTFTexel, observations: Observations | None = None) -> dict[str, np.ndarray]:
-    """Level-0 channels of the true maps: residual 0, converged 1, and the observation counts."""
+def truth_level(texels: BTFTexel, observations: Observations | dict | None = None) -> dict[str, np.ndarray]:
+    """Level-0 channels of the true maps: residual 0, converged 1, and the observation counts
+    (from `Observations` or a dict with n_valid, n_saturated, n_dark; zeros without)."""
     channels = {k: np.asarray(v, np.float32) for k, v in texels.to_channels().items()}
     shape = channels["sigma_x"].shape
     channels["residual"] = np.zeros(shape, np.float32)
     channels["converged"] = np.ones(shape, np.float32)
     for name in ("n_valid", "n_saturated", "n_dark"):
-        value = getattr(observations, name) if observations is not None else np.zeros(shape)
+        if observations is None:
+            value = np.zeros(shape)
+        else:
+            value = observations[name] if isinstance(observations, dict) else getattr(observations, name)
         channels[name] = np.asarray(value, np.float32)
     return channels
 
@@ -347,7 +352,7 @@ def synth_capture(out_dir: str | os.PathLike, *, key: PRNGKeyArray, size: tuple[
                   lights: int | str = 300, bits: int = 8, image_format: str = "png",
                   response: str = "linear", noise: float = 1.0, model: str = "reciprocal",
                   white_reflectance=0.95, sensor: Sensor | None = None, batch: int = 64,
-                  progress: bool | None = None) -> Path:
+                  workers: int = 8, progress: bool | None = None) -> Path:
     """Write a synthetic capture directory (design.md format) and its true maps in `OUT_DIR/truth/`.
 
     Everything is written into a temporary sibling directory that is renamed onto `out_dir` at the
@@ -403,26 +408,32 @@ def synth_capture(out_dir: str | os.PathLike, *, key: PRNGKeyArray, size: tuple[
             white_names.append(f"images/white_e{e}.{ext}")
             save(tmp / white_names[-1], np.asarray(white[e]))
         light_entries = []
-        observed = []
+        counts = {name: np.zeros(tuple(size), np.int32) for name in ("n_valid", "n_saturated", "n_dark")}
         bar = tqdm(total=n, unit="light", desc="synth", disable=None if progress is None else not progress)
-        for start in range(0, n, batch):
-            idx = jnp.arange(start, start + batch)
-            codes = synth_codes(k_obs, texels, dirs[jnp.minimum(idx, n - 1)], idx, view, exposures,
-                                sensor=sensor, model=model)
-            observed.append((slice(start, min(start + batch, n)),
-                             *observe(codes, exposures, white, refl_rgb, response=response if bits else "linear")))
-            codes = np.asarray(codes)
-            for b in range(min(batch, n - start)):
-                names = []
-                for e in range(len(EXPOSURES_S)):
-                    names.append(f"images/l{start + b:04d}_e{e}.{ext}")
-                    save(tmp / names[-1], codes[b, e])
-                light_entries.append({"theta_deg": float(angles[start + b, 0]), "phi_deg": float(angles[start + b, 1]),
-                                      "images": names})
-            bar.update(min(batch, n - start))
+        # Image files are written by threads (encoding and renames overlap); each batch is finished
+        # before the next is submitted, which bounds memory and surfaces errors early.
+        with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+            for start in range(0, n, batch):
+                idx = jnp.arange(start, start + batch)
+                codes = synth_codes(k_obs, texels, dirs[jnp.minimum(idx, n - 1)], idx, view, exposures,
+                                    sensor=sensor, model=model)
+                _, valid, saturated, dark = observe(codes, exposures, white, refl_rgb,
+                                                    response=response if bits else "linear")
+                count = min(batch, n - start)
+                for name, flags in zip(counts, (valid, saturated, dark), strict=True):
+                    counts[name] += np.asarray(flags)[:, :, :count].sum(axis=-1, dtype=np.int32)
+                codes = np.asarray(codes)
+                futures = []
+                for b in range(count):
+                    names = [f"images/l{start + b:04d}_e{e}.{ext}" for e in range(len(EXPOSURES_S))]
+                    futures += [pool.submit(save, tmp / name, codes[b, e]) for e, name in enumerate(names)]
+                    light_entries.append({"theta_deg": float(angles[start + b, 0]),
+                                          "phi_deg": float(angles[start + b, 1]), "images": names})
+                for future in futures:
+                    future.result()
+                bar.update(count)
         bar.close()
-        obs = observations_from_batches(observed, size=tuple(size), n_lights=n, light_dirs=dirs, view_dir=view,
-                                        progress=False)
+        obs = counts
         write_btf(tmp / "truth", [truth_level(texels, obs)], model=model,
                   meta={"source": "fitting synth", "light_indices": [int(i) for i in ids]})
         refl_list = [float(x) for x in np.asarray(refl_rgb)]

@@ -189,4 +189,4 @@ def test_cli_synth_bad_input_exit_2_and_no_output(tmp_path, capsys, monkeypatch)
     monkeypatch.setattr(fitting.synth, "write_png", failing_png)
     with pytest.raises(OSError):
         fitting_main(["synth", str(tmp_path / "half"), *args])
-    assert len(calls) == 9 and list(tmp_path.iterdir()) == [occupied]
+    assert len(calls) > 8 and list(tmp_path.iterdir()) == [occupied]
