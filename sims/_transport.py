@@ -102,13 +102,18 @@ def deposit(amount: Float[Array, "... H W"], hop_x: Float[Array, "... H W"] | No
         padded = lax.scatter_add(padded, index, updates.reshape((-1, ny, nx)), numbers,
                                  mode=lax.GatherScatterMode.PROMISE_IN_BOUNDS)
     padded = padded.reshape((n_fields, rows_p, cols_p))
+    # fold the padding back (periodic wrap) with broadcasts and `where`, which XLA fuses into
+    # the following elementwise pass (`.at[].add` would be a separate scatter)
     out = padded[:, :height, :width]
-    if ny == 2:
-        out = out.at[:, 0, :].add(padded[:, height, :width])
     if nx == 2:
-        out = out.at[:, :, 0].add(padded[:, :height, width])
-    if ny == 2 and nx == 2:
-        out = out.at[:, 0, 0].add(padded[:, height, width])
+        first_col = (jnp.arange(width) == 0)[None, None, :]
+        out = out + jnp.where(first_col, padded[:, :height, width:], 0.0)
+    if ny == 2:
+        first_row = (jnp.arange(height) == 0)[None, :, None]
+        wrapped = padded[:, height:, :width]
+        if nx == 2:
+            wrapped = wrapped + jnp.where(first_col, padded[:, height:, width:], 0.0)
+        out = out + jnp.where(first_row, wrapped, 0.0)
     return out.reshape(shape)
 
 
