@@ -147,3 +147,13 @@ def test_wavelength_grows_linearly_with_L0():
     assert r2 >= 0.9
     assert slope > 1.0  # grows with L0 (about 1.8 cells per unit of L0 here)
     assert np.all(np.diff(lam) > 0)
+
+
+def test_no_retrace_for_new_parameter_values():
+    """Numeric parameters are traced pytree leaves: new values reuse the compiled scan."""
+    h0 = init_ripples(jax.random.key(8), (6, 8))
+    simulate_ripples(h0, RippleParams(L0=3.0), steps=3)
+    size = simulate_ripples._cache_size()
+    for L0 in (3.5, 4.0, 4.5):
+        simulate_ripples(h0, RippleParams(L0=L0, q=0.5, b=1.0, D=0.5), steps=3)
+    assert simulate_ripples._cache_size() == size
