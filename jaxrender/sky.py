@@ -12,6 +12,11 @@ Cornette-Shanks Mie phase. Samples along both rays are placed at t = t_max u^2 (
 which concentrates them near the viewer where the air is dense (grazing rays near the horizon).
 A sample point whose path to the sun hits the Earth is in the Earth's shadow (dusk).
 
+Accuracy of the default 16 view / 8 light samples against 256 / 64 (sky half of a 64x33 envmap,
+luminance): median texel error 0.2-0.5 %, worst texel 1-4 % of the brightest sky radiance (near
+the horizon with a low sun); 32 / 16 samples cut that by 4x. tests/test_sky.py checks the
+quadrature against an independent float64 brute force of the same integral.
+
 Frame: world, y up (the viewer at (0, R + altitude, 0)); the ground is y < 0 directions. Linear
 RGB, one wavelength per channel (680, 550, 440 nm coefficients).
 
