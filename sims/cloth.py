@@ -165,7 +165,7 @@ def drape_cloth(*, rows: int = 40, cols: int = 32, width: float = 1.4, height: f
     rest = np.stack([(uu - 0.5) * width, top - vv * height, np.zeros_like(uu)], axis=-1)
     gather = shoulder_span / ((1 - 2 * shoulder_u) * width)
     x0 = np.stack([(uu - 0.5) * width * gather, top - vv * height * 0.98,
-                   fold_depth * np.sin(2 * np.pi * folds * uu) * (0.3 + vv)], axis=-1)
+                   fold_depth * np.cos(2 * np.pi * folds * (uu - 0.5)) * (0.3 + vv)], axis=-1)
     pinned = np.zeros((rows, cols))
     for centre in (shoulder_u, 1 - shoulder_u):
         pinned[0, int(round(centre * (cols - 1)))] = 1.0

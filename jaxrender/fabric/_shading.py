@@ -115,11 +115,18 @@ def tangent_frames(normal: Float[Array, "N 3"], dpdu: Float[Array, "N 3"]) -> Fl
     return jnp.stack([t, b, n], axis=1)
 
 
+def _local_dirs(frame: Array, wo: Array, wi: Array) -> tuple[Array, Array]:
+    """wo (N 1 3) and wi (N K 3) in the tangent frames; component form (XLA CPU is slow on tiny
+    contractions over a minor axis of 3)."""
+    wo_l = jnp.stack([sum(frame[:, r, c] * wo[:, c] for c in range(3)) for r in range(3)], -1)[:, None, :]
+    wi_l = jnp.stack([sum(frame[:, r, c][:, None] * wi[:, :, c] for c in range(3)) for r in range(3)], -1)
+    return wo_l, wi_l
+
+
 def shade_samples(texel: BTFTexel, frame: Float[Array, "N 3 3"], wo: Float[Array, "N 3"],
                   wi: Float[Array, "N K 3"], weight: Float[Array, "N K 3"]) -> Float[Array, "N 3"]:
     """sum_k R(wi_k, wo) / pi * weight_k (weight = L V / (K p)); directions in world space."""
-    wo_l = jnp.einsum("nij,nj->ni", frame, wo)[:, None, :]
-    wi_l = jnp.einsum("nij,nkj->nki", frame, wi)
+    wo_l, wi_l = _local_dirs(frame, wo, wi)
     t = jax.tree_util.tree_map(lambda a: a[:, None], texel)
     r = reflectance(t, wi_l, wo_l)
     return jnp.sum(r * weight, axis=1) / jnp.pi
