@@ -57,15 +57,15 @@ def test_step_matches_loop_reference(hop, wind_deg):
     ours = np.asarray(jax.jit(ripple_step)(h, params))
     ref = reference_step(np.asarray(h), L0=2.3, q=0.4, b=1.7, D=0.6, wind_deg=wind_deg, hop=hop)
     np.testing.assert_allclose(ours, ref, atol=_STEP_TOL, rtol=0)
-    # no-jit gives the same
-    np.testing.assert_allclose(np.asarray(ripple_step(h, params)), ref, atol=_STEP_TOL, rtol=0)
+    if wind_deg == 33.0:  # no-jit (op by op) gives the same; once per hop mode, it is slow
+        np.testing.assert_allclose(np.asarray(ripple_step(h, params)), ref, atol=_STEP_TOL, rtol=0)
 
 
 def test_paper_defaults_and_long_hops():
     assert (RippleParams().L0, RippleParams().q, RippleParams().b, RippleParams().D) == (7.3, 0.6, 2.0, 0.8)
     # hops longer than the grid wrap around (periodic)
     h = init_ripples(jax.random.key(2), (5, 6), low=1.0, high=1.5)
-    ours = np.asarray(ripple_step(h, RippleParams()))
+    ours = np.asarray(jax.jit(ripple_step)(h, RippleParams()))
     ref = reference_step(np.asarray(h), L0=7.3, q=0.6, b=2.0, D=0.8, wind_deg=0.0, hop="split")
     np.testing.assert_allclose(ours, ref, atol=_STEP_TOL, rtol=0)
 
