@@ -87,7 +87,7 @@ from jaxrender._math import normalize
 from jaxrender.brdf import SIGMA_FLOOR, BTFTexel, Lobe, tangent_frame
 
 __all__ = ["GaussianMixture", "EMInfo", "em_fit", "weighted_log_likelihood", "moment_match", "lobe_slope_nodes",
-           "em_texel", "em_texels", "moment_matched_texel", "mip_texel", "gather_children", "em_downsample",
+           "em_texel", "em_texels", "moment_matched_texel", "moment_matched_texels", "mip_texel", "gather_children", "em_downsample",
            "ONE_LOBE_TOLERANCE", "TWO_LOBE_GAIN", "DEFAULT_ORDER", "DEFAULT_ITERATIONS"]
 
 ONE_LOBE_TOLERANCE = 0.01  # relative ISE of the one-lobe summary above which a second lobe is considered
@@ -121,42 +121,101 @@ class EMInfo(eqx.Module):
 
 
 # --------------------------------------------------------------------------------------------
-# Plain weighted EM for a diagonal Gaussian mixture (one texel's samples)
+# Layout. XLA on CPU reduces short minor axes (2, 3, 9 nodes) very slowly, so the kernels below
+# work on structure-of-arrays data with the texel (problem) axis N LAST: coordinates as separate
+# arrays, nodes as `G Q N`, mixture parameters as `K N`. The whole per-texel computation is still
+# elementwise in N (texels never interact); the single-texel functions call it with N = 1.
 
 
-def _log_components(x: Float[Array, "G Q 2"], gmm: GaussianMixture) -> Float[Array, "G Q K"]:
-    d = x[:, :, None, :] - gmm.means[None, None, :, :]
-    var = gmm.variances[None, None, :, :]
-    return -0.5 * jnp.sum(jnp.log(2 * jnp.pi * var) + d * d / var, axis=-1)
+def _normalize3(x, y, z):
+    sq = x * x + y * y + z * z
+    positive = sq > 1e-24
+    n = jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 1.0)
+    return x / n, y / n, z / n
 
 
-def _group_weights(w: Float[Array, "G Q"]) -> tuple[Array, Array]:
-    mass = jnp.sum(w, axis=1)
-    return mass, w / jnp.maximum(mass, _TINY)[:, None]
+def _tangent_frame3(nx, ny, nz):
+    """`jaxrender.brdf.tangent_frame` in components: T = x projected onto N's plane, B = N x T."""
+    nx, ny, nz = _normalize3(nx, ny, nz)
+    tx, ty, tz = 1 - nx * nx, -nx * ny, -nx * nz
+    degenerate = tx * tx + ty * ty + tz * tz < 1e-12
+    tx, ty, tz = (jnp.where(degenerate, a, b) for a, b in zip((-ny * nx, 1 - ny * ny, -ny * nz), (tx, ty, tz)))
+    tx, ty, tz = _normalize3(tx, ty, tz)
+    return (tx, ty, tz), (ny * tz - nz * ty, nz * tx - nx * tz, nx * ty - ny * tx), (nx, ny, nz)
 
 
-def _e_step(x, w, gmm, virtual=1.0):
-    """Responsibilities per group (G K) from the group's mean log-density (times `virtual`), and
-    log sum_k per group."""
-    _, qn = _group_weights(w)
-    expected = virtual * jnp.einsum("gq,gqk->gk", qn, _log_components(x, gmm))
-    log_p = expected + jnp.log(jnp.maximum(gmm.weights, _TINY))[None, :]
-    lse = jax.scipy.special.logsumexp(log_p, axis=1)
-    return jnp.exp(log_p - lse[:, None]), lse
+def _logsumexp0(a):
+    top = jnp.max(a, axis=0)
+    safe = jnp.where(jnp.isfinite(top), top, 0.0)
+    return safe + jnp.log(jnp.sum(jnp.exp(a - safe[None]), axis=0))
 
 
-def _m_step(x, w, resp, old: GaussianMixture, var_floor) -> GaussianMixture:
-    rw = resp[:, None, :] * w[:, :, None]                    # G Q K
-    n = jnp.sum(rw, axis=(0, 1))                             # K
+# --------------------------------------------------------------------------------------------
+# Weighted (grouped) EM for diagonal Gaussian mixtures, batched over a trailing axis
+
+
+def _e_step(x0, x1, qn, params, virtual):
+    """Responsibilities `G K N` of each group and log sum_k per group `G N`."""
+    pi, m0, m1, v0, v1 = params
+    d0 = x0[:, :, None, :] - m0[None, None]
+    d1 = x1[:, :, None, :] - m1[None, None]
+    log_norm = -0.5 * (jnp.log(2 * jnp.pi * v0) + jnp.log(2 * jnp.pi * v1))
+    lg = log_norm[None, None] - 0.5 * (d0 * d0 / v0[None, None] + d1 * d1 / v1[None, None])      # G Q K N
+    ell = virtual * jnp.sum(qn[:, :, None, :] * lg, axis=1) + jnp.log(jnp.maximum(pi, _TINY))[None]  # G K N
+    lse = _logsumexp0(jnp.moveaxis(ell, 1, 0))                                                    # G N
+    return jnp.exp(ell - lse[:, None, :]), lse
+
+
+def _m_step(x0, x1, w, resp, params, var_floor):
+    rw = resp[:, None, :, :] * w[:, :, None, :]                                                  # G Q K N
+    n = jnp.sum(rw, axis=(0, 1))                                                                  # K N
     alive = n > _TINY
     safe_n = jnp.where(alive, n, 1.0)
-    means = jnp.einsum("gqk,gqd->kd", rw, x) / safe_n[:, None]
-    d = x[:, :, None, :] - means[None, None, :, :]
-    var = jnp.einsum("gqk,gqkd->kd", rw, d * d) / safe_n[:, None]
-    var = jnp.maximum(var, var_floor)
-    means = jnp.where(alive[:, None], means, old.means)
-    var = jnp.where(alive[:, None], var, old.variances)
-    return GaussianMixture(n / jnp.maximum(jnp.sum(n), _TINY), means, var)
+    m0 = jnp.sum(rw * x0[:, :, None, :], axis=(0, 1)) / safe_n
+    m1 = jnp.sum(rw * x1[:, :, None, :], axis=(0, 1)) / safe_n
+    d0 = x0[:, :, None, :] - m0[None, None]
+    d1 = x1[:, :, None, :] - m1[None, None]
+    v0 = jnp.maximum(jnp.sum(rw * d0 * d0, axis=(0, 1)) / safe_n, var_floor)
+    v1 = jnp.maximum(jnp.sum(rw * d1 * d1, axis=(0, 1)) / safe_n, var_floor)
+    _, om0, om1, ov0, ov1 = params
+    keep = lambda new, old: jnp.where(alive, new, old)  # noqa: E731
+    pi = n / jnp.maximum(jnp.sum(n, axis=0), _TINY)[None]
+    return pi, keep(m0, om0), keep(m1, om1), keep(v0, ov0), keep(v1, ov1)
+
+
+def _em_core(x0, x1, w, params, *, iterations, tol, var_floor, virtual, run):
+    """EM on `N` independent problems: nodes `G Q N`, parameters `K N`, `run` `N`.
+    Returns (parameters, log-likelihood N, iterations N, converged N, responsibilities G K N)."""
+    w = w / jnp.maximum(jnp.sum(w, axis=(0, 1)), _TINY)[None, None]
+    mass = jnp.sum(w, axis=1)                                                                     # G N
+    qn = w / jnp.maximum(mass, _TINY)[:, None, :]
+
+    def loglik(lse):
+        return jnp.sum(mass * lse, axis=0)
+
+    n = x0.shape[-1]
+    inf = jnp.full((n,), jnp.inf, x0.dtype)
+
+    def active(previous, current):
+        return run & ~(jnp.abs(current - previous) < tol)
+
+    def cond(state):
+        i, _, previous, current, _ = state
+        return (i < iterations) & jnp.any(active(previous, current))
+
+    def body(state):
+        i, params, previous, current, count = state
+        go = active(previous, current)
+        resp, lse = _e_step(x0, x1, qn, params, virtual)
+        new = _m_step(x0, x1, w, resp, params, var_floor)
+        params = tuple(jnp.where(go[None], a, b) for a, b in zip(new, params))
+        previous, current = jnp.where(go, current, previous), jnp.where(go, loglik(lse), current)
+        return i + 1, params, previous, current, count + go.astype(jnp.int32)
+
+    state = (jnp.zeros((), jnp.int32), tuple(params), -inf, inf, jnp.zeros((n,), jnp.int32))
+    _, params, previous, current, count = jax.lax.while_loop(cond, body, state)
+    resp, lse = _e_step(x0, x1, qn, params, virtual)
+    return params, loglik(lse), count, jnp.abs(current - previous) < tol, resp
 
 
 def _grouped(x, w):
@@ -167,14 +226,31 @@ def _grouped(x, w):
     return x, w
 
 
+def _to_soa(x, w, gmm: GaussianMixture | None = None):
+    x, w = _grouped(x, w)
+    out = (x[..., 0][..., None], x[..., 1][..., None], w[..., None])
+    if gmm is None:
+        return out
+    gmm = jax.tree.map(lambda a: jnp.asarray(a, dtype=x.dtype), gmm)
+    params = (gmm.weights[:, None], gmm.means[:, 0][:, None], gmm.means[:, 1][:, None],
+              gmm.variances[:, 0][:, None], gmm.variances[:, 1][:, None])
+    return out, params
+
+
+def _from_params(params) -> GaussianMixture:
+    pi, m0, m1, v0, v1 = (a[..., 0] for a in params)
+    return GaussianMixture(pi, jnp.stack([m0, m1], axis=-1), jnp.stack([v0, v1], axis=-1))
+
+
 def weighted_log_likelihood(x: Float[Array, "S 2"] | Float[Array, "G Q 2"], w: Float[Array, " S"] | Float[Array, "G Q"],
-                            gmm: GaussianMixture) -> Float[Array, ""]:
+                            gmm: GaussianMixture, *, virtual: float = 1.0) -> Float[Array, ""]:
     """sum_i w_i log sum_k pi_k N(x_i; mu_k, diag var_k) / sum_i w_i for plain samples (`S 2`);
     for grouped samples (`G Q 2`) the per-group terms use the group's weighted mean log-density."""
-    x, w = _grouped(x, w)
-    mass, _ = _group_weights(w)
-    _, lse = _e_step(x, w, gmm)
-    return jnp.sum(mass * lse) / jnp.maximum(jnp.sum(mass), _TINY)
+    (x0, x1, w), params = _to_soa(x, w, gmm)
+    w = w / jnp.maximum(jnp.sum(w), _TINY)
+    mass = jnp.sum(w, axis=1)
+    _, lse = _e_step(x0, x1, w / jnp.maximum(mass, _TINY)[:, None, :], params, virtual)
+    return jnp.sum(mass * lse)
 
 
 def em_fit(x: Float[Array, "S 2"] | Float[Array, "G Q 2"], w: Float[Array, " S"] | Float[Array, "G Q"],
@@ -183,54 +259,39 @@ def em_fit(x: Float[Array, "S 2"] | Float[Array, "G Q 2"], w: Float[Array, " S"]
            ) -> tuple[GaussianMixture, Float[Array, ""], Int[Array, ""], Bool[Array, ""]]:
     """Weighted EM for a diagonal Gaussian mixture from `init`: at most `iterations` E+M steps,
     stopping once the weighted mean log-likelihood changes by less than `tol` (default 1e-5 in
-    float32, 1e-10 in float64); `run=False` returns `init` (lets a vmapped caller skip texels).
+    float32, 1e-10 in float64); `run=False` returns `init`.
 
     Plain samples `S 2` (weights `S`): the textbook EM (as scikit-learn's, with weights).
     Grouped samples `G Q 2` (weights `G Q`): the nodes of one group (a child lobe's quadrature
     nodes) share one responsibility, computed from the group's weighted mean log-density, which
-    is the expected log-density under the child lobe, multiplied by `virtual` (hierarchical EM with `virtual` virtual samples per group):
-    a lobe is never split between components, and EM cannot overfit the node lattice.
+    is the expected log-density under the child lobe, multiplied by `virtual` (hierarchical EM
+    with `virtual` virtual samples per group): a lobe is never split between components, and EM
+    cannot overfit the node lattice.
 
     Returns (mixture, weighted mean log-likelihood of the returned mixture, iterations, converged).
     Zero-weight samples are ignored; a component that loses all its mass keeps its mean and
-    variance with weight 0 (no NaN). Vmap it over texels.
+    variance with weight 0 (no NaN). The same core runs the texel kernel, batched over texels.
     """
-    x, w = _grouped(x, w)
-    w = w / jnp.maximum(jnp.sum(w), _TINY)
-    mass, _ = _group_weights(w)
+    (x0, x1, w), params = _to_soa(x, w, init)
     if tol is None:
-        tol = 1e-5 if x.dtype == jnp.float32 else 1e-10
-    init = jax.tree.map(lambda a: jnp.asarray(a, dtype=x.dtype), init)
-    run = jnp.asarray(run)
-
-    def cond(state):
-        i, _, previous, current = state
-        return run & (i < iterations) & ~(jnp.abs(current - previous) < tol)
-
-    def body(state):
-        i, gmm, _, current = state
-        resp, lse = _e_step(x, w, gmm, virtual)
-        new = _m_step(x, w, resp, gmm, var_floor)
-        return i + 1, new, current, jnp.sum(mass * lse)
-
-    inf = jnp.asarray(jnp.inf, dtype=x.dtype)
-    state = (jnp.zeros((), jnp.int32), init, -inf, inf)  # |inf - -inf| is never below tol: at least one step
-    i, gmm, previous, current = jax.lax.while_loop(cond, body, state)
-    converged = jnp.abs(current - previous) < tol
-    return gmm, jnp.sum(mass * _e_step(x, w, gmm, virtual)[1]), i, converged
+        tol = 1e-5 if x0.dtype == jnp.float32 else 1e-10
+    params, loglik, count, converged, _ = _em_core(x0, x1, w, params, iterations=iterations, tol=tol,
+                                                   var_floor=var_floor, virtual=virtual,
+                                                   run=jnp.reshape(jnp.asarray(run), (1,)))
+    return _from_params(params), loglik[0], count[0], converged[0]
 
 
 def moment_match(x: Float[Array, "S 2"], w: Float[Array, " S"], *, var_floor: float = VAR_FLOOR) -> GaussianMixture:
     """The one-component maximum-likelihood fit: weighted mean and variance (K = 1)."""
     w = w / jnp.maximum(jnp.sum(w), _TINY)
-    mean = jnp.einsum("s,sd->d", w, x)
+    mean = jnp.sum(w[:, None] * x, axis=0)
     d = x - mean[None, :]
-    var = jnp.maximum(jnp.einsum("s,sd->d", w, d * d), var_floor)
+    var = jnp.maximum(jnp.sum(w[:, None] * d * d, axis=0), var_floor)
     return GaussianMixture(jnp.ones((1,), x.dtype), mean[None, :], var[None, :])
 
 
 # --------------------------------------------------------------------------------------------
-# Child lobes -> slope-space nodes
+# Child lobes -> slope-space nodes (batched, texel axis last)
 
 
 def _hermite_grid(order: int, dtype) -> tuple[Array, Array, Array]:
@@ -240,127 +301,159 @@ def _hermite_grid(order: int, dtype) -> tuple[Array, Array, Array]:
     return (jnp.asarray(a.ravel(), dtype=dtype), jnp.asarray(b.ravel(), dtype=dtype), jnp.asarray(q.ravel(), dtype=dtype))
 
 
+def _lobe_nodes(normal, sigma_x, sigma_y, order):
+    """Nodes of lobes `L N` (normal a 3-tuple): half vectors (3-tuple of `L Q N`), slopes x0, x1, weights q `Q`."""
+    a, b, q = _hermite_grid(order, sigma_x.dtype)
+    t, bt, n = _tangent_frame3(*normal)
+    sx = jnp.maximum(sigma_x, SIGMA_FLOOR)[:, None, :]
+    sy = jnp.maximum(sigma_y, SIGMA_FLOOR)[:, None, :]
+    aa, bb = a[None, :, None], b[None, :, None]
+    h = _normalize3(*(aa * sx * tc[:, None, :] + bb * sy * bc[:, None, :] + nc[:, None, :] for tc, bc, nc in zip(t, bt, n)))
+    hz = jnp.maximum(h[2], _HZ_FLOOR)
+    return h, h[0] / hz, h[1] / hz, q
+
+
 def lobe_slope_nodes(lobe: Lobe, *, order: int = DEFAULT_ORDER) -> tuple[Float[Array, "Q 3"], Float[Array, "Q 2"], Float[Array, " Q"]]:
     """Gauss-Hermite nodes of one lobe's D: (half vectors h, sample-frame slopes x, weights summing to 1)."""
-    dtype = lobe.sigma_x.dtype
-    a, b, q = _hermite_grid(order, dtype)
-    t, bt, n = tangent_frame(lobe.normal)
-    sx = jnp.maximum(lobe.sigma_x, SIGMA_FLOOR)
-    sy = jnp.maximum(lobe.sigma_y, SIGMA_FLOOR)
-    h = normalize(a[:, None] * sx * t[None, :] + b[:, None] * sy * bt[None, :] + n[None, :])
-    hz = jnp.maximum(h[:, 2], _HZ_FLOOR)
-    return h, h[:, :2] / hz[:, None], q
+    col = lambda a: jnp.reshape(a, (1, 1))  # noqa: E731
+    h, x0, x1, q = _lobe_nodes(tuple(col(lobe.normal[i]) for i in range(3)), col(lobe.sigma_x), col(lobe.sigma_y), order)
+    return jnp.stack([c[0, :, 0] for c in h], axis=-1), jnp.stack([x0[0, :, 0], x1[0, :, 0]], axis=-1), q
 
 
-def _lobe_energy(lobe: Lobe, mass) -> Float[Array, "3"]:
-    sx = jnp.maximum(lobe.sigma_x, SIGMA_FLOOR)
-    sy = jnp.maximum(lobe.sigma_y, SIGMA_FLOOR)
-    return (mass * jnp.pi * sx * sy) * lobe.rho_s
-
-
-def _ise_terms(ma, mua, va, mb, mub, vb):
-    """sum_jk ma_j mb_k <N_j, N_k> for diagonal 2-D Gaussians."""
-    v = va[:, None, :] + vb[None, :, :]
-    d = mua[:, None, :] - mub[None, :, :]
-    g = jnp.prod(jnp.exp(-0.5 * d * d / v) / jnp.sqrt(2 * jnp.pi * v), axis=-1)
-    return jnp.einsum("j,jk,k->", ma, g, mb)
+def _ise_terms(a, b):
+    """sum_jk ma_j mb_k <N_j, N_k> for sets of diagonal 2-D Gaussians (mass, m0, m1, v0, v1), each `J N`."""
+    ma, ma0, ma1, va0, va1 = a
+    mb, mb0, mb1, vb0, vb1 = b
+    s0 = va0[:, None] + vb0[None]
+    s1 = va1[:, None] + vb1[None]
+    d0 = ma0[:, None] - mb0[None]
+    d1 = ma1[:, None] - mb1[None]
+    g = jnp.exp(-0.5 * (d0 * d0 / s0 + d1 * d1 / s1)) / (2 * jnp.pi * jnp.sqrt(s0 * s1))
+    return jnp.sum(ma[:, None] * g * mb[None], axis=(0, 1))
 
 
 def _relative_ise(p, q) -> Array:
-    pp = _ise_terms(*p, *p)
-    ise = pp - 2 * _ise_terms(*p, *q) + _ise_terms(*q, *q)
+    pp = _ise_terms(p, p)
+    ise = pp - 2 * _ise_terms(p, q) + _ise_terms(q, q)
     return jnp.maximum(ise, 0.0) / jnp.maximum(pp, _TINY)
 
 
-def _component_lobe(h, w, e, resp_k, mean_k, mass_k) -> Lobe:
-    """Fitted Gaussian (mean slope, responsibilities) -> Lobe (see the module docstring)."""
-    rw = resp_k * w
-    total = jnp.maximum(jnp.sum(rw), _TINY)
+def _component_lobes(h, w, e, resp, m0, m1, mass):
+    """Fitted Gaussians -> lobes (see the module docstring), batched over N: nodes `G Q N`,
+    responsibilities `G N`, means and masses `N`. Returns (rho_s 3-tuple, normal 3-tuple, sx, sy)."""
+    rw = resp[:, None, :] * w
+    total = jnp.maximum(jnp.sum(rw, axis=(0, 1)), _TINY)
+    mean = lambda a: jnp.sum(rw * a, axis=(0, 1)) / total  # noqa: E731
 
     def frame_slopes(normal):
-        t, b, n = tangent_frame(normal)
-        hn = jnp.maximum(h @ n, _HZ_FLOOR)
-        return t, b, n, (h @ t) / hn, (h @ b) / hn
+        t, b, n = _tangent_frame3(*normal)
+        dot = lambda u: sum(hc * uc[None, None, :] for hc, uc in zip(h, u))  # noqa: E731
+        hn = jnp.maximum(dot(n), _HZ_FLOOR)
+        return t, b, n, dot(t) / hn, dot(b) / hn
 
     def recentre(_, normal):  # move the normal until the nodes' mean slope in its own frame is 0
         t, b, n, p, q = frame_slopes(normal)
-        return normalize(n + (jnp.sum(rw * p) / total) * t + (jnp.sum(rw * q) / total) * b)
+        mp, mq = mean(p), mean(q)
+        return _normalize3(*(nc + mp * tc + mq * bc for tc, bc, nc in zip(t, b, n)))
 
-    normal = normalize(jnp.concatenate([mean_k, jnp.ones((1,), mean_k.dtype)]))
+    normal = _normalize3(m0, m1, jnp.ones_like(m0))
     normal = jax.lax.fori_loop(0, _RECENTRE_STEPS, recentre, normal)
     _, _, _, p, q = frame_slopes(normal)
-    sx = jnp.maximum(jnp.sqrt(2 * jnp.sum(rw * p * p) / total), SIGMA_FLOOR)
-    sy = jnp.maximum(jnp.sqrt(2 * jnp.sum(rw * q * q) / total), SIGMA_FLOOR)
-    energy = resp_k @ e                                            # 3
-    denom = mass_k * jnp.pi * sx * sy
-    rho_s = jnp.where(denom > _TINY, energy / jnp.maximum(denom, _TINY), 0.0)
-    return Lobe(rho_s, normal, sx, sy)
+    sx = jnp.maximum(jnp.sqrt(2 * mean(p * p)), SIGMA_FLOOR)
+    sy = jnp.maximum(jnp.sqrt(2 * mean(q * q)), SIGMA_FLOOR)
+    denom = mass * jnp.pi * sx * sy
+    ok = denom > _TINY
+    rho_s = tuple(jnp.where(ok, jnp.sum(resp[:, None, :] * ec, axis=(0, 1)) / jnp.where(ok, denom, 1.0), 0.0) for ec in e)
+    return rho_s, normal, sx, sy
 
 
-def _children_nodes(children: BTFTexel, order: int):
-    """The 4 children's (up to 8) lobes as nodes: h (S 3), x (S 2), w (S), e (S 3), lobe id grouping."""
-    lobes = jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=0), children.lobe0, children.lobe1)  # 8 lobes
-    mass = 0.25 * jnp.concatenate([1 - children.weight, children.weight])                              # 8
-    h, x, q = jax.vmap(lambda lobe: lobe_slope_nodes(lobe, order=order))(lobes)                          # 8 Q ...
-    energy = jax.vmap(_lobe_energy)(lobes, mass)                                                       # 8 3
-    e = q[:, :, None] * energy[:, None, :]                                                             # 8 Q 3
+def _texels_kernel(children: BTFTexel, order: int, iterations: int, tol: float | None, max_lobes: int):
+    """Coarse texels from children with leading axes `N 4` -> (BTFTexel N, EMInfo N)."""
+    dtype = children.weight.dtype
+    if tol is None:
+        tol = 1e-5 if dtype == jnp.float32 else 1e-10
+    lobes = jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=1), children.lobe0, children.lobe1)   # N 8 ...
+    comps = lambda a: tuple(jnp.transpose(a[..., i]) for i in range(3))  # noqa: E731  N 8 3 -> 3 x (8 N)
+    normal, rho_s = comps(lobes.normal), comps(lobes.rho_s)
+    sigma_x, sigma_y = jnp.transpose(lobes.sigma_x), jnp.transpose(lobes.sigma_y)
+    mass_l = 0.25 * jnp.transpose(jnp.concatenate([1 - children.weight, children.weight], axis=1))       # 8 N
+    h, x0, x1, q = _lobe_nodes(normal, sigma_x, sigma_y, order)                                          # 8 Q N
+    area = mass_l * jnp.pi * jnp.maximum(sigma_x, SIGMA_FLOOR) * jnp.maximum(sigma_y, SIGMA_FLOOR)       # 8 N
+    qq = q[None, :, None]
+    e = tuple(qq * (area * rc)[:, None, :] for rc in rho_s)                                              # 3 x (8 Q N)
     # Geometric fallback so that a texel without any specular energy still gets a defined lobe.
-    w = jnp.mean(e, axis=-1) + 1e-20 * q * mass[:, None]
-    return h, x, w, e
+    w = (e[0] + e[1] + e[2]) / 3 + 1e-20 * qq * mass_l[:, None, :]
+    # Children's lobes as Gaussians in the common slope space (the density p of the 1-or-2 rule).
+    mass = jnp.sum(w, axis=1)                                                                           # 8 N
+    total = jnp.maximum(jnp.sum(mass, axis=0), _TINY)
+    qn = w / jnp.maximum(mass, _TINY)[:, None, :]
+    mu0, mu1 = jnp.sum(qn * x0, axis=1), jnp.sum(qn * x1, axis=1)
+    var0 = jnp.maximum(jnp.sum(qn * (x0 - mu0[:, None]) ** 2, axis=1), VAR_FLOOR)
+    var1 = jnp.maximum(jnp.sum(qn * (x1 - mu1[:, None]) ** 2, axis=1), VAR_FLOOR)
+    p = (mass / total[None], mu0, mu1, var0, var1)
+    # The one-lobe summary: weighted mean and variance of all nodes.
+    wn = w / total[None, None]
+    om0, om1 = jnp.sum(wn * x0, axis=(0, 1)), jnp.sum(wn * x1, axis=(0, 1))
+    ov0 = jnp.maximum(jnp.sum(wn * (x0 - om0[None, None]) ** 2, axis=(0, 1)), VAR_FLOOR)
+    ov1 = jnp.maximum(jnp.sum(wn * (x1 - om1[None, None]) ** 2, axis=(0, 1)), VAR_FLOOR)
+    one = jnp.ones_like(total)
+    error_one = _relative_ise(p, tuple(a[None] for a in (one, om0, om1, ov0, ov1)))
+    n_tex = total.shape[0]
+    single_resp = jnp.ones_like(mass)
+    if max_lobes == 1:
+        rho, nrm, sx, sy = _component_lobes(h, w, e, single_resp, om0, om1, one)
+        lobe = Lobe(jnp.stack(rho, -1), jnp.stack(nrm, -1), sx, sy)
+        zero = jnp.zeros_like(total)
+        info = EMInfo(jnp.zeros((n_tex,), jnp.int32), jnp.ones((n_tex,), bool), jnp.zeros((n_tex,), bool),
+                      error_one, zero, zero)
+        return BTFTexel(jnp.mean(children.rho_d, axis=1), lobe, lobe, zero), info
+    # Initialization: heaviest child lobe, then the farthest (energy x squared normalized distance).
+    index = jnp.arange(mass.shape[0])[:, None]
+    hot1 = (index == jnp.argmax(mass, axis=0)[None]).astype(dtype)
+    at1 = lambda a: jnp.sum(hot1 * a, axis=0)  # noqa: E731
+    d2 = (mu0 - at1(mu0)[None]) ** 2 / (var0 + at1(var0)[None]) + (mu1 - at1(mu1)[None]) ** 2 / (var1 + at1(var1)[None])
+    hot2 = (index == jnp.argmax(mass * d2, axis=0)[None]).astype(dtype)
+    at2 = lambda a: jnp.sum(hot2 * a, axis=0)  # noqa: E731
+    init = (jnp.full((2, n_tex), 0.5, dtype),) + tuple(jnp.stack([at1(a), at2(a)]) for a in (mu0, mu1, var0, var1))
+    # EM only where one lobe is not enough (the others stop at once).
+    run = error_one > ONE_LOBE_TOLERANCE
+    params, loglik, count, converged, resp = _em_core(x0, x1, w, init, iterations=iterations, tol=tol,
+                                                      var_floor=VAR_FLOOR, virtual=VIRTUAL, run=run)
+    pi, m0, m1, v0, v1 = params
+    error_two = _relative_ise(p, params)
+    two = run & (error_two < TWO_LOBE_GAIN * error_one)
+    # Lobe 0 = the heavier component. Two conversions in one batch of 2N problems: lobe 0 (the
+    # major component where two lobes are kept, else the single summary) and the minor component.
+    swap = pi[1] > pi[0]
+    major = lambda a: jnp.where(swap, a[1], a[0])  # noqa: E731
+    minor = lambda a: jnp.where(swap, a[0], a[1])  # noqa: E731
+    first = lambda a, b: jnp.where(two.reshape((1,) * (a.ndim - 1) + two.shape), a, b)  # noqa: E731
+    cat = lambda *xs: jnp.concatenate(xs, axis=-1)  # noqa: E731
+    resp_k = jnp.moveaxis(resp, 1, 0)                                                           # K G N
+    rho, nrm, sx, sy = _component_lobes(
+        tuple(cat(c, c) for c in h), cat(w, w), tuple(cat(c, c) for c in e),
+        cat(first(major(resp_k), single_resp), minor(resp_k)), cat(first(major(m0), om0), minor(m0)),
+        cat(first(major(m1), om1), minor(m1)), cat(first(major(pi), one), minor(pi)))
+    split = lambda a: (a[:n_tex], a[n_tex:])  # noqa: E731
+    lobe0, minor_lobe = (Lobe(*f) for f in zip(split(jnp.stack(rho, -1)), split(jnp.stack(nrm, -1)), split(sx), split(sy)))
+    lobe1 = jax.tree.map(lambda u, v: jnp.where(two.reshape(two.shape + (1,) * (u.ndim - 1)), u, v), minor_lobe, lobe0)
+    weight = jnp.where(two, minor(pi), 0.0)
+    info = EMInfo(count, converged, two, error_one, error_two, loglik)
+    return BTFTexel(jnp.mean(children.rho_d, axis=1), lobe0, lobe1, weight), info
 
 
 def em_texel(children: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: int = DEFAULT_ITERATIONS,
              tol: float | None = None) -> tuple[BTFTexel, EMInfo]:
     """One coarse texel from its 4 children (fields with a leading axis of 4): EM 1-or-2 lobes."""
-    h, x, w, e = _children_nodes(children, order)
-    n_lobes, n_nodes = w.shape
-    # Children's lobes as Gaussians in the common slope space (the density p of the 1-or-2 rule).
-    mass = jnp.sum(w, axis=1)
-    total = jnp.maximum(jnp.sum(mass), _TINY)
-    qn = w / jnp.maximum(mass, _TINY)[:, None]
-    mu = jnp.einsum("jq,jqd->jd", qn, x)
-    dev = x - mu[:, None, :]
-    var = jnp.maximum(jnp.einsum("jq,jqd->jd", qn, dev * dev), VAR_FLOOR)
-    p = (mass / total, mu, var)
-    # Initialization: heaviest child lobe, then the farthest (energy x squared normalized distance).
-    j1 = jnp.argmax(mass)
-    d2 = jnp.sum((mu - mu[j1][None, :]) ** 2 / (var + var[j1][None, :]), axis=-1)
-    j2 = jnp.argmax(mass * d2)
-    init = GaussianMixture(jnp.full((2,), 0.5, x.dtype), jnp.stack([mu[j1], mu[j2]]), jnp.stack([var[j1], var[j2]]))
-    hs, xs, ws, es = (h.reshape(n_lobes * n_nodes, 3), x.reshape(n_lobes * n_nodes, 2),
-                      w.reshape(n_lobes * n_nodes), e.reshape(n_lobes * n_nodes, 3))
-    one = moment_match(xs, ws)
-    error_one = _relative_ise(p, (one.weights, one.means, one.variances))
-    # EM only where one lobe is not enough (in a vmapped batch the others stop at once).
-    gmm, loglik, n_iter, converged = em_fit(x, w, init, iterations=iterations, tol=tol,
-                                            run=error_one > ONE_LOBE_TOLERANCE, virtual=VIRTUAL)
-    error_two = _relative_ise(p, (gmm.weights, gmm.means, gmm.variances))
-    two = (error_one > ONE_LOBE_TOLERANCE) & (error_two < TWO_LOBE_GAIN * error_one)
-
-    resp = jnp.repeat(_e_step(x, w, gmm, VIRTUAL)[0], n_nodes, axis=0)   # S K: a lobe's nodes share theirs
-    k0 = jnp.argmax(gmm.weights)  # lobe 0 = the heavier component
-    k1 = 1 - k0
-    # The three candidate lobes (major, minor, single) in one vmapped conversion.
-    resps = jnp.stack([resp[:, k0], resp[:, k1], jnp.ones_like(ws)])
-    means = jnp.stack([gmm.means[k0], gmm.means[k1], one.means[0]])
-    masses = jnp.stack([gmm.weights[k0], gmm.weights[k1], jnp.ones((), ws.dtype)])
-    lobes = jax.vmap(lambda r, m, a: _component_lobe(hs, ws, es, r, m, a))(resps, means, masses)
-    pick = lambda i: jax.tree.map(lambda a: jnp.where(two, a[i], a[2]), lobes)  # noqa: E731
-    lobe0, lobe1 = pick(0), pick(1)
-    weight = jnp.where(two, gmm.weights[k1], 0.0)
-    rho_d = jnp.mean(children.rho_d, axis=0)
-    info = EMInfo(n_iter, converged, two, error_one, error_two, loglik)
-    return BTFTexel(rho_d, lobe0, lobe1, weight), info
+    texel, info = _texels_kernel(jax.tree.map(lambda a: a[None], children), order, iterations, tol, 2)
+    return jax.tree.map(lambda a: a[0], (texel, info))
 
 
 def moment_matched_texel(children: BTFTexel, *, order: int = DEFAULT_ORDER) -> BTFTexel:
     """The one-lobe LEAN/Toksvig-style summary: energy-weighted slope mean and second moments of
     the children's lobes in one lobe (the baseline the two-lobe EM must beat)."""
-    h, x, w, e = _children_nodes(children, order)
-    hs, xs, ws, es = h.reshape(-1, 3), x.reshape(-1, 2), w.reshape(-1), e.reshape(-1, 3)
-    one = moment_match(xs, ws)
-    lobe = _component_lobe(hs, ws, es, jnp.ones_like(ws), one.means[0], jnp.ones((), ws.dtype))
-    return BTFTexel(jnp.mean(children.rho_d, axis=0), lobe, lobe, jnp.zeros((), ws.dtype))
+    texel, _ = _texels_kernel(jax.tree.map(lambda a: a[None], children), order, 0, None, 1)
+    return jax.tree.map(lambda a: a[0], texel)
 
 
 def mip_texel(children: BTFTexel) -> BTFTexel:
@@ -388,14 +481,19 @@ def gather_children(level: BTFTexel) -> BTFTexel:
 
 
 @eqx.filter_jit
-def _em_batch(children: BTFTexel, order: int, iterations: int, tol: float | None):
-    return jax.vmap(lambda c: em_texel(c, order=order, iterations=iterations, tol=tol))(children)
+def _em_batch(children: BTFTexel, order: int, iterations: int, tol: float | None, max_lobes: int = 2):
+    return _texels_kernel(children, order, iterations, tol, max_lobes)
 
 
 def em_texels(children: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: int = DEFAULT_ITERATIONS,
               tol: float | None = None) -> tuple[BTFTexel, EMInfo]:
-    """`em_texel` jitted and vmapped over a leading texel axis (`N 4` children -> `N` texels)."""
+    """`em_texel` over a leading texel axis (`N 4` children -> `N` texels), jitted, batched."""
     return _em_batch(children, order, iterations, tol)
+
+
+def moment_matched_texels(children: BTFTexel, *, order: int = DEFAULT_ORDER) -> BTFTexel:
+    """`moment_matched_texel` over a leading texel axis, jitted, batched."""
+    return _em_batch(children, order, 0, None, 1)[0]
 
 
 def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: int = DEFAULT_ITERATIONS,

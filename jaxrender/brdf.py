@@ -11,7 +11,9 @@ T = x projected onto the plane of N, B = N x T, and with h the half vector of li
 
 R is what a capture observes (radiance over a white board's radiance at normal incidence, times
 the board's reflectance); f is what the renderer shades with. Cosines are taken to each lobe's
-normal N; the diffuse term uses lobe 0's normal. Two-lobe texels mix their specular terms as
+normal N; the diffuse term uses the weight-averaged normal normalize((1 - weight) N0 + weight N1),
+which is lobe 0's normal for a one-lobe texel (a two-lobe pyramid texel summarizing children with
+two directions keeps their mean normal for its diffuse shading). Two-lobe texels mix their specular terms as
 (1 - weight) * lobe0 + weight * lobe1.
 """
 
@@ -24,7 +26,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._math import dot, normalize, safe_div
 
 __all__ = ["Lobe", "BTFTexel", "MODELS", "SIGMA_FLOOR", "COS_FLOOR", "tangent_frame", "slope_distribution",
-           "lobe_reflectance", "reflectance", "brdf", "half_vector"]
+           "lobe_reflectance", "reflectance", "brdf", "half_vector", "diffuse_normal"]
 
 MODELS = ("reciprocal", "paper")
 SIGMA_FLOOR = 1e-3  # slopes below this are numerically a mirror; the fit floors sigma here
@@ -127,11 +129,17 @@ def lobe_reflectance(lobe: Lobe, wi: Float[ArrayLike, "... 3"], wo: Float[ArrayL
     return jnp.where(lit, safe_div(d, denom), 0.0)[..., None] * lobe.rho_s
 
 
+def diffuse_normal(texel: BTFTexel) -> Float[Array, "... 3"]:
+    """normalize((1 - weight) N0 + weight N1): lobe 0's normal where the texel has one lobe."""
+    w = texel.weight[..., None]
+    return normalize((1 - w) * normalize(texel.lobe0.normal) + w * normalize(texel.lobe1.normal))
+
+
 def reflectance(texel: BTFTexel, wi: Float[ArrayLike, "... 3"], wo: Float[ArrayLike, "... 3"], *,
                 model: str = "reciprocal") -> Float[Array, "... 3"]:
     """R of eq. 1 (what a capture observes) for light direction `wi` and view direction `wo`."""
     wi, wo = jnp.asarray(wi), jnp.asarray(wo)
-    n0 = normalize(texel.lobe0.normal)
+    n0 = diffuse_normal(texel)
     geometric = (wi[..., 2] > 0) & (wo[..., 2] > 0)
     cos_i = jnp.maximum(dot(wi, n0), 0.0)
     w = texel.weight[..., None]
@@ -147,6 +155,6 @@ def brdf(texel: BTFTexel, wi: Float[ArrayLike, "... 3"], wo: Float[ArrayLike, ".
     in the renderer; here f is given with respect to lobe normals as in `reflectance`.
     """
     wi, wo = jnp.asarray(wi), jnp.asarray(wo)
-    n0 = normalize(texel.lobe0.normal)
+    n0 = diffuse_normal(texel)
     cos_i = jnp.maximum(dot(wi, n0), COS_FLOOR)
     return reflectance(texel, wi, wo) / (jnp.pi * cos_i[..., None])

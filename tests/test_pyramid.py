@@ -27,18 +27,22 @@ def _direction(tilt, azimuth):
 
 def two_direction_children(key, n=N_TEXELS):
     """`n` coarse texels; each has children split 2+2 or 3+1 between two specular directions at
-    least 25 degrees apart, with random widths (slopes 0.04-0.2) and colours."""
+    least 25 degrees apart, with random widths (slopes 0.04-0.2) and colours, each child jittered
+    around its direction's parameters."""
     rng = np.random.default_rng(int(jax.random.randint(key, (), 0, 2**31 - 1)))
     tilt_a, az_a = rng.uniform(np.radians(10), np.radians(30), n), rng.uniform(0, 2 * np.pi, n)
     tilt_b = rng.uniform(np.radians(10), np.radians(30), n)
     az_b = az_a + rng.choice([-1, 1], n) * rng.uniform(np.radians(100), np.radians(180), n)
-    normals = np.stack([_direction(tilt_a, az_a), _direction(tilt_b, az_b)], 1)          # n 2 3
     which = np.array([[0, 1, 0, 1], [0, 0, 0, 1], [1, 0, 1, 1], [0, 1, 1, 0]])[np.arange(n) % 4]  # n 4
-    normal = np.take_along_axis(normals, which[..., None], axis=1)
-    sigma = rng.uniform(0.04, 0.2, (n, 2, 2))
-    sx = np.take_along_axis(sigma[..., 0], which, axis=1)
-    sy = np.take_along_axis(sigma[..., 1], which, axis=1)
-    rho_s = np.take_along_axis(rng.uniform(0.2, 1.0, (n, 2, 3)), which[..., None], axis=1)
+    pick = lambda a: np.take_along_axis(a, which.reshape(which.shape + (1,) * (a.ndim - 2)), axis=1)  # noqa: E731
+    # Each child jitters around its direction: 2 degrees of tilt, 5 of azimuth, 15 % in sigma and rho_s.
+    tilt = pick(np.stack([tilt_a, tilt_b], 1)) + rng.normal(0, np.radians(2), (n, 4))
+    azimuth = pick(np.stack([az_a, az_b], 1)) + rng.normal(0, np.radians(5), (n, 4))
+    normal = _direction(tilt, azimuth)
+    jitter = lambda shape: rng.uniform(0.85, 1.15, shape)  # noqa: E731
+    sx = pick(rng.uniform(0.04, 0.2, (n, 2))) * jitter((n, 4))
+    sy = pick(rng.uniform(0.04, 0.2, (n, 2))) * jitter((n, 4))
+    rho_s = pick(rng.uniform(0.2, 1.0, (n, 2, 3))) * jitter((n, 4, 1))
     rho_d = rng.uniform(0.02, 0.3, (n, 4, 3))
     return BTFTexel.single(jnp.asarray(rho_d), jnp.asarray(rho_s), jnp.asarray(normal), jnp.asarray(sx), jnp.asarray(sy))
 
