@@ -81,9 +81,12 @@ def exposure_weights(codes: Float[ArrayLike, "E ..."], exposures_s: Float[ArrayL
     """w(c, t) = hat(c) * t (module docstring); 0 at and beyond the saturation and dark codes."""
     codes = jnp.asarray(codes)
     t = _expand(jnp.asarray(exposures_s, dtype=codes.dtype), codes.ndim)
-    hat = jnp.clip(jnp.minimum(codes - DARK_CODE, SATURATION_CODE - codes) / HAT_RAMP, 0.0, 1.0)
-    valid = (codes > DARK_CODE) & (codes < SATURATION_CODE)
-    return jnp.where(valid, hat, 0.0) * t
+    return _hat(codes) * t
+
+
+def _hat(codes: Array) -> Array:
+    """clip(min(c - DARK, SAT - c) / RAMP, 0, 1): exactly 0 at and beyond both thresholds."""
+    return jnp.clip(jnp.minimum(codes - DARK_CODE, SATURATION_CODE - codes) * (1.0 / HAT_RAMP), 0.0, 1.0)
 
 
 @functools.partial(jax.jit, static_argnames=("response",))
@@ -101,9 +104,10 @@ def merge_exposures(codes: Float[ArrayLike, "E H W 3"], exposures_s: Float[Array
     exposures = jnp.asarray(exposures_s, dtype=codes.dtype)
     t = _expand(exposures, codes.ndim)
     linear = linearize(codes, response)
-    w = exposure_weights(codes, exposures)
-    total = jnp.sum(w, axis=0)
-    merged = jnp.sum(w * linear / t, axis=0) / jnp.where(total > 0, total, 1.0)
+    # sum(w * linear / t) / sum(w) with w = hat * t: the t cancels in the numerator.
+    hat = _hat(codes)
+    total = jnp.sum(hat * t, axis=0)
+    merged = jnp.sum(hat * linear, axis=0) / jnp.where(total > 0, total, 1.0)
     shortest, longest = jnp.argmin(exposures), jnp.argmax(exposures)
     c_short, c_long = codes[shortest], codes[longest]
     dark = c_long <= DARK_CODE

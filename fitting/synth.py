@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from jaxrender.brdf import MODELS, BTFTexel, Lobe, reflectance
+from jaxrender.brdf import MODELS, BTFTexel, reflectance
 from jaxrender.io import InputError, atomic_path, linear_to_srgb, write_btf, write_exr, write_png
 
 from .hdr import Observations, observations_from_batches, observe
