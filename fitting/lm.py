@@ -48,6 +48,7 @@ S_MIN, S_MAX = -12.0, 3.0   # log(sigma - floor): sigma from SIGMA_FLOOR + 6e-6 
 SIGMA_STARTS = (0.03, 0.1, 0.3)
 RIDGE = 1e-7                # relative ridge of the 2 x 2 normal equations of (rho_d, rho_s)
 DEFAULT_MAX_STEPS = 40
+_LINEAR = "qr"
 
 
 class TexelFit(eqx.Module):
@@ -146,9 +147,9 @@ def project_rho(ab: Float[Array, "L 2"], ratio_cl: Float[Array, "3 L"], w: Float
 
 def _normalized_weights(weight: Float[Array, "L"]) -> Float[Array, "L"]:
     valid = weight > 0
-    n = jnp.sum(valid)
+    n = jnp.sum(valid).astype(weight.dtype)
     total = jnp.sum(jnp.where(valid, weight, 0.0))
-    scale = jnp.where(total > 0, n / jnp.where(total > 0, total, 1.0), 0.0).astype(weight.dtype)
+    scale = jnp.where(total > 0, n / jnp.where(total > 0, total, 1.0), 0.0)
     return jnp.where(valid, weight * scale, 0.0)
 
 
@@ -246,7 +247,12 @@ def _initial_theta(ratio_cl, w, light_dirs, view_dir, model):
 def _solve_optimistix(fn, theta0, args, max_steps, rtol, atol):
     import optimistix as optx
 
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    import lineax as lx
+
+    # The damped step solves [J; sqrt(lam) I] d = [r; 0]: with 4 unknowns the normal equations
+    # (4 x 4 Cholesky) are much cheaper to compile and run than a QR of the (3L + 4) x 4 matrix.
+    linear = lx.QR() if _LINEAR == "qr" else lx.Normal(lx.Cholesky())
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=linear)
     sol = optx.least_squares(fn, solver, theta0, args, max_steps=max_steps, throw=False)
     ok = sol.result == optx.RESULTS.successful
     return sol.value, ok, sol.stats["num_steps"]
