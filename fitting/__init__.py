@@ -23,3 +23,13 @@ from .em import moment_matched_texel as moment_matched_texel
 from .em import mip_texel as mip_texel
 from .pyramid import build_pyramid as build_pyramid
 from .pyramid import pyramid_levels as pyramid_levels
+from .lm import TexelFit as TexelFit
+from .lm import fit_texel as fit_texel
+from .lm import fit_texels as fit_texels
+from .lm import texel_cost as texel_cost
+from .fit import fit_capture as fit_capture
+from .fit import fit_maps as fit_maps
+from .fit import fit_observations as fit_observations
+from .report import fit_report as fit_report
+from .report import relight as relight
+from .report import relight_errors as relight_errors
