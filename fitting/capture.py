@@ -89,8 +89,13 @@ def _direction(theta_deg: float, phi_deg: float) -> np.ndarray:
     return np.array([math.sin(t) * math.cos(p), math.sin(t) * math.sin(p), math.cos(t)])
 
 
-def _check_image(path: Path, size: tuple[int, int] | None, check_pixels: bool) -> list[str]:
-    """Problems of one image file (empty when fine)."""
+def _check_image(path: Path, size: tuple[int, int] | None, check_pixels: bool) -> tuple[list[str], tuple | None]:
+    """(problems of one image file (empty when fine), its H x W or None when unreadable)."""
+    result = _check_image_problems(path, size, check_pixels)
+    return result if isinstance(result, tuple) else (result, None)
+
+
+def _check_image_problems(path: Path, size: tuple[int, int] | None, check_pixels: bool):
     if not path.exists():
         return [f"{path}: missing image"]
     if not path.is_file():
@@ -124,7 +129,7 @@ def _check_image(path: Path, size: tuple[int, int] | None, check_pixels: bool) -
     if size is not None and tuple(image.shape[:2]) != tuple(size):
         problems.append(f"{path}: size {image.shape[0]}x{image.shape[1]} differs from capture.json's size "
                         f"{size[0]}x{size[1]} (H x W)")
-    return problems
+    return problems, tuple(image.shape[:2])
 
 
 def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, workers: int = 4) -> Capture:
@@ -245,7 +250,13 @@ def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, w
     unique = list(dict.fromkeys(paths))
     with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         results = list(pool.map(lambda p: _check_image(p, size, check_pixels), unique))
-    image_problems = [line for result in results for line in result]
+    image_problems = [line for problems_, _ in results for line in problems_]
+    if size is None:  # no usable size in the manifest: the images must at least agree with each other
+        shapes = [(path, shape) for path, (_, shape) in zip(unique, results, strict=True) if shape is not None]
+        if shapes:
+            first_path, first = shapes[0]
+            image_problems += [f"{path}: size {shape[0]}x{shape[1]} differs from {first_path}'s {first[0]}x{first[1]}"
+                               for path, shape in shapes[1:] if shape != first]
     if len(image_problems) > MAX_IMAGE_PROBLEMS:
         extra = len(image_problems) - MAX_IMAGE_PROBLEMS
         image_problems = image_problems[:MAX_IMAGE_PROBLEMS] + [f"{root}: ... and {extra} more image problems"]

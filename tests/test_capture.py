@@ -158,6 +158,15 @@ def test_every_problem_is_reported_at_once(tmp_path):
         assert fragment in joined
 
 
+def test_images_must_agree_when_the_manifest_size_is_bad(tmp_path):
+    make_capture(tmp_path)
+    edit_manifest(tmp_path, lambda m: m.pop("size"))
+    write_png(tmp_path / "images/l2_e2.png", np.zeros((5, 5, 3)), srgb=False)
+    lines = problems_of(tmp_path)
+    assert lines == [f"{tmp_path / 'capture.json'}: size: missing or not [H, W] with positive integers",
+                     f"{tmp_path / 'images/l2_e2.png'}: size 5x5 differs from {tmp_path / 'images/white_e0.png'}'s 4x5"]
+
+
 @pytest.mark.parametrize("fmt,bits", [("png", 8), ("png", 16), ("exr", 0)])
 def test_raw_code_values(tmp_path, fmt, bits):
     """PNG codes are integer / full scale, not linearised (saturation is judged on them); EXR
