@@ -3,6 +3,7 @@ bump mapping of ripples onto dunes, sand-grain texture, culling and LOD per quad
 shading with dune and ripple shadows, ray casting to the screen, and sand-dust billboards."""
 
 from ._dune import close_periodic as close_periodic
+from ._dune import ray_cast_coherent as ray_cast_coherent
 from ._dune import ray_cast_heightfield as ray_cast_heightfield
 from ._dune import vertex_normals as vertex_normals
 from ._grain import sand_grain_texture as sand_grain_texture

@@ -27,6 +27,6 @@ def sand_grain_texture(key: Array, size: int = 64, *, grain_height: float = 0.6,
     dy = (jnp.roll(h, -1, axis=0) - jnp.roll(h, 1, axis=0)) / 2.0
     n = normalize(jnp.stack([-dx, -dy, jnp.ones_like(h)], axis=-1))
     l = normalize(jnp.asarray(light, dtype=h.dtype))
-    shade = jnp.maximum(jnp.sum(n * l, axis=-1), 0.0)
+    shade = jnp.maximum(jnp.sum(n * jnp.reshape(l, (1, 1, 3)), axis=-1), 0.0)
     shade = shade / jnp.mean(shade)
     return 1.0 + contrast * (shade - 1.0)

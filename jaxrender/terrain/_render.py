@@ -10,8 +10,9 @@ Pipeline of a frame:
    pyramid level, Fig. 6) tilted into the dune's local slope frame (Fig. 5), the sand-grain
    albedo, Lambert under the sun with the dune shadow (incremental ray march, section 3.4) and
    the ripple shadow (horizon map, section 3.5), plus sky ambient light.
-4. Each pixel's camera ray is cast against the dune heightfield; the hit's quad and position in
-   the quad select the shaded texels (bilinear, within the quad's tile of its level's atlas).
+4. Each pixel's camera ray is cast against the dune heightfield (`ray_cast_coherent`: a full
+   march for every 4th pixel, a short bracketed one for the others); the hit's quad and position
+   in the quad select the shaded texels (bilinear, within the quad's tile of its level's atlas).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from ..lights._sun import Sun
 from ..shadows._heightfield import heightfield_shadow, triangle_height
 from ..shadows._horizon import horizon_map, horizon_shadow
 from ..textures import bilinear, downsample2
-from ._dune import close_periodic, ray_cast_heightfield, vertex_normals
+from ._dune import close_periodic, ray_cast_coherent, vertex_normals
 from ._grain import sand_grain_texture
 from ._lod import quad_levels, quad_screen_area, quad_visibility
 from ._normals import normal_pyramid, ripple_normal_map
@@ -166,7 +167,7 @@ def _shade_level(maps: TerrainMaps, ids: Array, l: int, sun: Sun, albedo: Array,
     r = maps.ripple_normals[l].shape[0]
     nqx = maps.quads[1]
     dtype = maps.z.dtype
-    a, bb = jnp.meshgrid(jnp.arange(n), jnp.arange(n), indexing="ij")
+    a, bb = jnp.meshgrid(jnp.arange(n, dtype=jnp.int32), jnp.arange(n, dtype=jnp.int32), indexing="ij")
     frac_y = (a.astype(dtype) + 0.5) / n
     frac_x = (bb.astype(dtype) + 0.5) / n
 
@@ -228,7 +229,8 @@ def render_terrain(maps: TerrainMaps, camera: Camera, sun: Sun, *, albedo: Float
                               dune_shadows=dune_shadows, ripple_shadows=ripple_shadows, shadow_steps=shadow_steps)
     dirs = camera.primary_rays().astype(dtype)
     eye = camera.eye.astype(dtype)
-    t, hit = ray_cast_heightfield(maps.z, eye, dirs, spacing=maps.spacing, n_steps=ray_steps)
+    stride = max(1, min(4, camera.height // 100))  # 4 at 480 rows; small images need the full march
+    t, hit = ray_cast_coherent(maps.z, eye, dirs, spacing=maps.spacing, n_steps=ray_steps, stride=stride)
     t_safe = jnp.where(hit, t, 0.0)
     p = jnp.reshape(eye, (1, 1, 3)) + dirs * t_safe[..., None]
     nqy, nqx = maps.quads
@@ -252,11 +254,9 @@ def render_terrain(maps: TerrainMaps, camera: Camera, sun: Sun, *, albedo: Float
         v = (s // cols).astype(dtype) + jnp.clip(fy, 0.5 / n, 1 - 0.5 / n)
         c = bilinear(atlas, jnp.stack([u / cols, v / rows], axis=-1))
         color = jnp.where((q_level == l)[..., None], c, color)
-    # a hit on a quad that was culled cannot happen for a first hit from above; keep a safe
-    # fallback (smooth dune normal, no ripples, no shadows) rather than a hole
-    fallback = _shade_points(maps, p[..., :2], jnp.zeros(p.shape, dtype), jnp.ones(p.shape[:-1] + (1,), dtype),
-                             jnp.zeros(p.shape[:-1] + (maps.horizon[0].shape[-1],), dtype), sun, albedo, sky,
-                             _Flags(False, False, False, 1))
+    # a first hit from above cannot land on a culled quad; should rounding put one there, the
+    # pixel gets the sky-lit sand colour rather than a hole
+    fallback = jnp.reshape(albedo * sky / jnp.pi, (1, 1, 3))
     color = jnp.where((q_slot >= 0)[..., None], color, fallback)
     color = jnp.where(hit[..., None], color, 0.0)
     return color, t, hit
