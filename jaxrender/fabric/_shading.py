@@ -97,8 +97,9 @@ def lookup_texels(mats: MaterialSet, material: Int[Array, "N"], uv: Float[Array,
     off = mats.offsets[level, material]
     hw = mats.sizes[level, material]
     frac = uv - jnp.floor(uv)
-    col = jnp.clip(jnp.floor(frac[:, 0] * hw[:, 1]).astype(jnp.int32), 0, hw[:, 1] - 1)
-    row = jnp.clip(jnp.floor(frac[:, 1] * hw[:, 0]).astype(jnp.int32), 0, hw[:, 0] - 1)
+    hwf = hw.astype(uv.dtype)
+    col = jnp.clip(jnp.floor(frac[:, 0] * hwf[:, 1]).astype(jnp.int32), 0, hw[:, 1] - 1)
+    row = jnp.clip(jnp.floor(frac[:, 1] * hwf[:, 0]).astype(jnp.int32), 0, hw[:, 0] - 1)
     index = off + row * hw[:, 1] + col
     return jax.tree_util.tree_map(lambda a: a[index], mats.table)
 

@@ -520,12 +520,14 @@ _noh_frame_jit = eqx.filter_jit(noh_frame)
 def render_noh(*, frames: int = 20, width: int = 720, height: int = 480, key: PRNGKeyArray | None = None,
                mask_rgb: np.ndarray | None = None, btfs: dict[str, list[BTFTexel]] | None = None,
                env: EnvMap | None = None, k_env: int = 20, k_fire: int = 20, progress=None,
-               info: dict | None = None, **scene_kwargs) -> Float[Array, "F H W 3"]:
+               info: dict | None = None, time_repeats: int = 0, **scene_kwargs) -> Float[Array, "F H W 3"]:
     """The animation: `frames` linear-radiance frames H x W x 3 (float32).
 
     `progress(1)` is called after each frame; `info` (a dict) receives `prepare_s`, `compile_s`
     (the first frame, including compilation), `frame_s` (a list, later frames) and `exposure`
     (for `tonemap_frames`: the garment's 90th-percentile luminance in frame 0 -> 0.3).
+    `time_repeats` = N: afterwards render N more frames (cycling through the sequence, discarded)
+    and put their times into `info["timed_s"]` (compiled, `block_until_ready`).
     """
     key = jax.random.key(2024) if key is None else key
     k_scene, k_env_key, k_frames = jax.random.split(key, 3)
@@ -548,7 +550,14 @@ def render_noh(*, frames: int = 20, width: int = 720, height: int = 480, key: PR
         out.append(np.asarray(img, dtype=np.float32))
         if progress is not None:
             progress(1)
+    timed = []
+    for i in range(time_repeats):
+        ts = time.perf_counter()
+        jax.block_until_ready(_noh_frame_jit(scene, prep, scene.flames[:, i % frames],
+                                             jax.random.fold_in(k_frames, frames + i), k_fire=k_fire))
+        timed.append(time.perf_counter() - ts)
     if info is not None:
+        info["timed_s"] = timed
         lum = out[0].reshape(-1, 3)[np.asarray(prep.g_index)] @ np.asarray([0.2126, 0.7152, 0.0722], np.float32)
         info.update(prepare_s=t1 - t0, compile_s=compile_s, frame_s=frame_s,
                     exposure=0.3 / max(float(np.percentile(lum, 90)) if lum.size else 1.0, 1e-6))
