@@ -1,0 +1,100 @@
+"""Frame time of the Noh scene (paper 004, section 4.4): a 720x480 frame of the draped garment with
+20 environment + 20 fire directions and 2-lobe EM BTF levels; 20 frames of animation.
+
+Targets (issue 5): <= 1 s per frame after compilation; 20 frames <= 20 s.
+
+What is timed (compile time apart, `block_until_ready`, median of repeats):
+- `static`: the per-sequence part (rasterized G-buffer, floor, 4 garment depth maps + PCSS,
+  K_env = 20 environment samples and I_static), compiled, second call;
+- `frame`: one animation frame (K_f = 20 fire samples by power, shading of every garment texel
+  at two mip levels x two lobes and every floor pixel, visible flames, compositing);
+- peer (same run): `frame + static`, i.e. a frame that recomputes the static part (no caching
+  of I_static and shadows across the sequence), and the ratio of the two;
+- `animation`: 20 consecutive frames (the default sequence), wall time, compiled.
+
+Run: `python benchmarks/noh_frame.py` (720x480) or `--quick` (360x240, 5 repeats).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+
+import jax
+import numpy as np
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--repeats", type=int, default=None)
+    args = parser.parse_args()
+    width, height = (360, 240) if args.quick else (720, 480)
+    repeats = args.repeats or (5 if args.quick else 7)
+
+    from jaxrender.scenes import noh
+
+    t = time.perf_counter()
+    btfs = noh.default_btfs(size=32, pyramid="em")
+    env = noh.default_environment()
+    scene = noh.noh_scene(width=width, height=height, frames=20, btfs=btfs, env=env)
+    setup_s = time.perf_counter() - t
+    two_lobe = float(np.mean([float(np.mean(np.asarray(lv.weight) > 0)) for lv in btfs["brocade"][1:]]))
+
+    t = time.perf_counter()
+    prep = jax.block_until_ready(noh.prepare_noh(scene, key=jax.random.key(1)))
+    static_compile_s = time.perf_counter() - t
+    static = []
+    for i in range(max(3, repeats // 2)):
+        t = time.perf_counter()
+        jax.block_until_ready(noh.prepare_noh(scene, key=jax.random.key(1)))
+        static.append(time.perf_counter() - t)
+
+    frame = noh._noh_frame_jit
+    t = time.perf_counter()
+    jax.block_until_ready(frame(scene, prep, scene.flames[:, 0], jax.random.key(0)))
+    frame_compile_s = time.perf_counter() - t
+    frames = []
+    for i in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(frame(scene, prep, scene.flames[:, i % 20], jax.random.key(i)))
+        frames.append(time.perf_counter() - t)
+    t = time.perf_counter()
+    for i in range(20):
+        jax.block_until_ready(frame(scene, prep, scene.flames[:, i], jax.random.key(100 + i)))
+    animation_s = time.perf_counter() - t
+
+    frame_med, static_med = statistics.median(frames), statistics.median(static)
+    rows = [
+        ("resolution", f"{width}x{height}"),
+        ("garment / floor pixels", f"{prep.g_pos.shape[0]} / {prep.f_pos.shape[0]}"),
+        ("K_env + K_fire, lobes", "20 + 20, 2 (EM levels; brocade levels 1.. two-lobe fraction "
+                                  f"{two_lobe:.2f})"),
+        ("scene setup (cloth sim, sky, flames, EM pyramids; incl. compile) s", f"{setup_s:.2f}"),
+        ("static part: compile + first run s", f"{static_compile_s:.2f}"),
+        ("static part (per sequence), median s", f"{static_med:.3f}"),
+        ("frame: compile + first run s", f"{frame_compile_s:.2f}"),
+        ("frame (static cached), median s", f"{frame_med:.3f}"),
+        ("peer: frame recomputing the static part, s", f"{frame_med + static_med:.3f}"),
+        ("ratio peer / frame", f"{(frame_med + static_med) / frame_med:.2f}x"),
+        ("20 frames of animation (compiled) s", f"{animation_s:.2f}"),
+        ("20 frames incl. static part s", f"{animation_s + static_med:.2f}"),
+    ]
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"# noh_frame ({'quick' if args.quick else 'full'}) on {platform.processor() or platform.machine()}, "
+          f"{os.cpu_count()} cores, load average {load:.1f}, jax {jax.__version__}")
+    print("| quantity | value |")
+    print("|---|---|")
+    for k, v in rows:
+        print(f"| {k} | {v} |")
+    ok_frame = frame_med <= 1.0
+    ok_anim = animation_s <= 20.0
+    print(f"\ntarget frame <= 1 s: {'met' if ok_frame else 'MISSED'} ({frame_med:.3f} s); "
+          f"20 frames <= 20 s: {'met' if ok_anim else 'MISSED'} ({animation_s:.2f} s)")
+
+
+if __name__ == "__main__":
+    main()
