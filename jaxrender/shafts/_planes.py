@@ -101,7 +101,9 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
     g_per_pixel / tables: skip the mesh interpolation / the tables (float mode only).
     tile: (rows, cols) of the pruning tiles; plane_chunk: planes evaluated together (a chunk is
     skipped on a tile when it misses the depth range of the tile's rays inside the cone).
-    prune: skip tiles and chunks outside the cone (the result is the same either way). surface_shadows: "map" (shadow maps with a slope-scaled bias, as the
+    prune: skip tiles and chunks outside the cone (the result is the same either way); False
+    evaluates every pixel and plane in one vectorized pass: a much smaller graph (faster
+    compilation, e.g. for small images and gradients) at the cost of the pruned work. surface_shadows: "map" (shadow maps with a slope-scaled bias, as the
     hardware does) or "rays" (exact shadow rays, as the ray march). return_parts: also return (surface, per-light in-scattering list).
     """
     if quantize_bits and (not tables or g_per_pixel):
@@ -170,7 +172,7 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
         return F * h
 
     # tiles
-    ty, tx = tile
+    ty, tx = tile if prune else (H, W)  # without pruning: one tile, all planes at once (small graphs)
     Hp, Wp = -(-H // ty) * ty, -(-W // tx) * tx
     n_ty, n_tx = Hp // ty, Wp // tx
 
@@ -201,7 +203,7 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
     cos_t = tiles_of(pad(cos_psi, None))
     surf_t = tiles_of(pad(surface_t, 0.0))
     sub = ((jnp.arange(subplanes, dtype=dtype) + 0.5) / subplanes - 0.5)
-    pc = max(1, min(plane_chunk, planes))  # planes per chunk
+    pc = max(1, min(plane_chunk, planes)) if prune else planes  # planes per chunk
     n_chunks = -(-planes // pc)
     n_pad = n_chunks * pc
 
@@ -233,9 +235,10 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
         res = sm.resolution
         bias = settings.shadow_bias
 
-        t0, t1 = cone_intervals(scene, light, dirs, surface_t, reach)
-        if not prune:  # every pixel, every plane
-            t0, t1 = jnp.zeros_like(t0), jnp.full_like(t1, FAR)
+        if prune:
+            t0, t1 = cone_intervals(scene, light, dirs, surface_t, reach)
+        else:  # every pixel, every plane
+            t0, t1 = jnp.zeros_like(surface_t), jnp.full_like(surface_t, FAR)
         t0_t = tiles_of(pad(t0 * cos_psi, 0.0))  # view-depth interval of each pixel inside the cone
         t1_t = tiles_of(pad(t1 * cos_psi, 0.0))
         ld_t = tiles_of(pad(local_dirs, None))
@@ -327,7 +330,10 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
             zeros = jnp.zeros((ty, tx, 3), dtype=dtype)
             return jax.lax.cond(active, tile_fn, lambda a: zeros, args)
 
-        out = jax.lax.map(maybe_tile, (dirs_t, ld_t, cos_t, surf_t, t0_t, t1_t, tile_rows, tile_cols))
+        if prune:
+            out = jax.lax.map(maybe_tile, (dirs_t, ld_t, cos_t, surf_t, t0_t, t1_t, tile_rows, tile_cols))
+        else:
+            out = chunk_fn((dirs_t[0], ld_t[0], cos_t[0], surf_t[0], 0, 0), 0)[None]
         per_light.append(untile(out))
 
     image = frame + sum(per_light)
