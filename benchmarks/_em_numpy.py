@@ -176,14 +176,14 @@ def em_texels_numpy(children: dict, *, order=DEFAULT_ORDER, iterations=DEFAULT_I
     resp = np.repeat(resp, n_nodes, axis=1)                                                 # N S K
     k0 = np.argmax(weights, axis=1)
     k1 = 1 - k0
-    major = _component_lobes(hs, ws, es, resp[idx, :, k0], means[idx, k0], weights[idx, k0])
+    # Two conversions, as the JAX kernel: lobe 0 (major where two lobes, else the single summary), minor.
+    t2 = two[:, None]
+    first_resp = np.where(t2, resp[idx, :, k0], 1.0)
+    first_mean = np.where(t2, means[idx, k0], one_mean)
+    first_mass = np.where(two, weights[idx, k0], 1.0)
+    lobe0 = _component_lobes(hs, ws, es, first_resp, first_mean, first_mass)
     minor = _component_lobes(hs, ws, es, resp[idx, :, k1], means[idx, k1], weights[idx, k1])
-    single = _component_lobes(hs, ws, es, np.ones_like(ws), one_mean, np.ones(n_tex, dtype))
-
-    def pick(a, b):
-        return tuple(np.where(two.reshape((-1,) + (1,) * (u.ndim - 1)), u, v) for u, v in zip(a, b))
-
-    lobe0, lobe1 = pick(major, single), pick(minor, single)
+    lobe1 = tuple(np.where(two.reshape((-1,) + (1,) * (u.ndim - 1)), u, v) for u, v in zip(minor, lobe0))
     weight = np.where(two, weights[idx, k1], 0).astype(dtype)
     names = ("rho_s", "normal", "sigma_x", "sigma_y")
     return {"rho_d": np.mean(children["rho_d"], axis=1), "lobe0": dict(zip(names, lobe0)),

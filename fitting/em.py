@@ -203,14 +203,16 @@ def _em_core(x0, x1, w, params, *, iterations, tol, var_floor, virtual, run):
         i, _, previous, current, _ = state
         return (i < iterations) & jnp.any(active(previous, current))
 
-    def body(state):
+    def step(state):
         i, params, previous, current, count = state
-        go = active(previous, current)
+        go = active(previous, current) & (i < iterations)
         resp, lse = _e_step(x0, x1, qn, params, virtual)
         new = _m_step(x0, x1, w, resp, params, var_floor)
         params = tuple(jnp.where(go[None], a, b) for a, b in zip(new, params))
         previous, current = jnp.where(go, current, previous), jnp.where(go, loglik(lse), current)
         return i + 1, params, previous, current, count + go.astype(jnp.int32)
+
+    body = step
 
     state = (jnp.zeros((), jnp.int32), tuple(params), -inf, inf, jnp.zeros((n,), jnp.int32))
     _, params, previous, current, count = jax.lax.while_loop(cond, body, state)

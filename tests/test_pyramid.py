@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from fitting import cli
-from fitting.em import em_texels, gather_children, mip_texel, moment_matched_texel
+from fitting.em import em_texels, gather_children, mip_texel, moment_matched_texels
 from fitting.pyramid import build_pyramid, pyramid_levels
 from jaxrender.brdf import BTFTexel, reflectance
 from jaxrender.io import LOBE_CHANNELS, read_btf, write_btf
@@ -74,7 +74,7 @@ def _render(texels: BTFTexel, wi, wo):
 def rendering_errors(children: BTFTexel, wi, wo) -> dict[str, float]:
     """Relative RMS (over texels, pairs and channels) of each coarse method vs the children's average."""
     reference = sum(_render(jax.tree.map(lambda a: a[:, c], children), wi, wo) for c in range(4)) / 4
-    coarse = {"em": em_texels(children)[0], "moment": jax.jit(jax.vmap(moment_matched_texel))(children),
+    coarse = {"em": em_texels(children)[0], "moment": moment_matched_texels(children),
               "mip": jax.vmap(mip_texel)(children)}
     return {name: float(jnp.linalg.norm(_render(texel, wi, wo) - reference) / jnp.linalg.norm(reference))
             for name, texel in coarse.items()}
