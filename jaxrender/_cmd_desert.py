@@ -12,9 +12,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="output image: .exr (linear) or .png (tone-mapped)")
     parser.add_argument("--width", type=int, default=720, help="image width (default 720)")
     parser.add_argument("--height", type=int, default=480, help="image height (default 480)")
-    parser.add_argument("--sun-elevation", type=float, default=22.0, help="sun elevation in degrees (default 22)")
-    parser.add_argument("--sun-azimuth", type=float, default=200.0,
-                        help="sun azimuth in degrees from +x (downwind) toward +y (default 200)")
+    parser.add_argument("--sun-elevation", type=float, default=18.0, help="sun elevation in degrees (default 18)")
+    parser.add_argument("--sun-azimuth", type=float, default=165.0,
+                        help="sun azimuth in degrees from +x (downwind) toward +y (default 165)")
     for name, help_ in [("ripples", "bump-mapped wind ripples and sand grain"), ("lod", "level of detail per dune quad"),
                         ("culling", "back-face and view-frustum culling of dune quads"),
                         ("dune-shadows", "dune shadows (ray march toward the sun)"),

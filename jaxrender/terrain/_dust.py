@@ -27,7 +27,7 @@ class DustParticles(eqx.Module):
 
 
 def dust_particles(key: Array, maps, ripple_height: Float[Array, "R R"], *, count: int = 600, steps: int = 20,
-                   drift: float = 0.35, lift: float = 0.05, jitter: float = 0.08, size: float = 0.9,
+                   drift: float = 0.35, lift: float = 0.02, jitter: float = 0.08, size: float = 0.5,
                    region: tuple[float, float, float, float] | None = None) -> DustParticles:
     """Emit `count` clouds at random ripple-grid points of the dunes and advect them `steps`
     steps of eq. 7: x += dx + a_x, y += a_y, z = H_dune(x, y) + dz + a_z (wind along +x,
@@ -57,7 +57,7 @@ def dust_particles(key: Array, maps, ripple_height: Float[Array, "R R"], *, coun
 
     xy, az = jax.lax.scan(advect, xy, noise)
     z = triangle_height(maps.z, xy, spacing=maps.spacing) + lift + az[-1] + radius
-    return DustParticles(jnp.concatenate([xy, z[:, None]], axis=-1), radius, jnp.full((count,), 0.45, dtype))
+    return DustParticles(jnp.concatenate([xy, z[:, None]], axis=-1), radius, jnp.full((count,), 0.1, dtype))
 
 
 def billboard_alpha(rho: Array, opacity: Array) -> Array:
@@ -70,11 +70,12 @@ def billboard_alpha(rho: Array, opacity: Array) -> Array:
 
 def composite_billboards(image: Float[Array, "H W 3"], depth: Float[Array, "H W"], camera: Camera,
                          particles: DustParticles, sun: Sun, sky_irradiance: Float[Array, "3"], *,
-                         max_radius_px: int = 24) -> Float[Array, "H W 3"]:
+                         sunlit: Float[Array, "P"] | None = None, max_radius_px: int = 16) -> Float[Array, "H W 3"]:
     """Alpha-blend the clouds over `image`, farthest first (sorted by depth, then a scan), each
     hidden where the scene at that pixel (`depth`, distance along the ray) is nearer than it.
     Billboards are squares facing the camera; their screen radius is clamped to
-    `max_radius_px` (the static patch each one updates)."""
+    `max_radius_px` (the static patch each one updates). `sunlit` (0..1 per cloud, default 1)
+    scales the sunlight a cloud receives (0 inside a dune's shadow)."""
     dtype = image.dtype
     h, w = depth.shape
     pix, zview = camera.project(particles.position.astype(dtype))
@@ -88,8 +89,11 @@ def composite_billboards(image: Float[Array, "H W 3"], depth: Float[Array, "H W"
     dep = jnp.pad(depth, ((m, m), (m, m)), constant_values=jnp.inf)
     off = jnp.arange(size, dtype=dtype) - m
     rgb3 = (1, 1, 3)
-    colour = jnp.asarray(DUST_ALBEDO, dtype) / jnp.pi * (0.6 * sun.irradiance.astype(dtype) * jnp.maximum(sun.direction[2], 0.0).astype(dtype)
-                                                        + sky_irradiance.astype(dtype))
+    lit = jnp.ones(particles.radius.shape, dtype) if sunlit is None else sunlit.astype(dtype)
+    # single scattering of sunlight (isotropic phase, ~1/4 of the incident flux) plus sky light
+    albedo = jnp.asarray(DUST_ALBEDO, dtype) / jnp.pi
+    sun_part = 0.25 * sun.irradiance.astype(dtype) * albedo
+    sky_part = sky_irradiance.astype(dtype) * albedo
 
     def draw(img, i):
         cx, cy = pix[i, 0], pix[i, 1]
@@ -105,6 +109,7 @@ def composite_billboards(image: Float[Array, "H W 3"], depth: Float[Array, "H W"
         rho = jnp.sqrt((py[:, None] - cy) ** 2 + (px[None, :] - cx) ** 2) / jnp.maximum(rad_px[i], 1e-6)
         alpha = billboard_alpha(rho, particles.opacity[i])
         alpha = jnp.where((dpatch > dist[i]) & (zview[i] > 0), alpha, 0.0)[..., None]
+        colour = sky_part + lit[i] * sun_part
         patch = patch * (1 - alpha) + alpha * jnp.reshape(colour, rgb3)
         return jax.lax.dynamic_update_slice(img, patch, (start_r, start_c, 0)), None
 
