@@ -1,0 +1,70 @@
+"""Full desert frame (issue 3 section 4): 720 x 480, 64 x 64 dunes, ripple maps up to 64 x 64 per
+quad, LOD + culling, dune and ripple shadows, dust. Target: <= 2 s per frame after compilation.
+The peer in the same run is the same frame without culling and LOD (every quad at 64 x 64).
+
+    python benchmarks/desert_frame.py [--quick] [--no-peer]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import jax
+
+from jaxrender.io import write_png
+from jaxrender.scenes import desert as D
+
+FIG = Path(__file__).parent / "figures"
+
+
+def timed(fn, repeats):
+    start = time.perf_counter()
+    jax.block_until_ready(fn())
+    compile_s = time.perf_counter() - start
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return compile_s, statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="360x240, 32x32 dunes, 32 texels per quad")
+    parser.add_argument("--no-peer", action="store_true", help="skip the no-culling, no-LOD frame")
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    if args.quick:
+        w, h, size = 360, 240, dict(dune_size=32, ripple_size=32, texels=32)
+    else:
+        w, h, size = 720, 480, dict(dune_size=64, ripple_size=64, texels=64)
+    start = time.perf_counter()
+    scene = D.desert_scene(**size)
+    jax.block_until_ready(scene)
+    scene_s = time.perf_counter() - start
+    camera = D.default_camera(scene, width=w, height=h)
+    rows = []
+    for name, lod, culling in [("LOD + culling", True, True)] + ([] if args.no_peer else [("no LOD, no culling", False, False)]):
+        kw = dict(lod=lod, culling=culling)
+        c, t = timed(lambda: D.desert_frame(scene, camera, **kw), args.repeats if lod else 1)
+        rows.append((name, c, t))
+        print(f"{name}: compile {c:.1f} s, frame {t:.3f} s", flush=True)
+        if lod:
+            FIG.mkdir(exist_ok=True)
+            write_png(FIG / ("desert_frame_quick.png" if args.quick else "desert_frame.png"),
+                      D.to_display(D.desert_frame(scene, camera, **kw)), srgb=False)
+    print()
+    print(f"{w}x{h}, {size['dune_size']}^2 dune quads, ripple maps up to {size['texels']}^2 per quad, both shadows, dust; "
+          f"scene build (automata + maps) {scene_s:.1f} s")
+    print("| frame | time after compilation (s) | compile (s) | ratio |")
+    print("|---|---|---|---|")
+    for name, c, t in rows:
+        print(f"| {name} | {t:.3f} | {c:.1f} | {rows[-1][2] / t:.1f}x |")
+
+
+if __name__ == "__main__":
+    main()
