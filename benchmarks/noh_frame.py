@@ -11,6 +11,8 @@ What is timed (compile time apart, `block_until_ready`, median of repeats):
 - peer (same run): `frame + static`, i.e. a frame that recomputes the static part (no caching
   of I_static and shadows across the sequence), and the ratio of the two;
 - `animation`: 20 consecutive frames (the default sequence), wall time, compiled.
+Process CPU time per frame is printed too: on a shared machine it is the stable figure (an idle
+2-core machine runs a frame in about CPU time / 2 when both cores are busy).
 
 Run: `python benchmarks/noh_frame.py` (720x480) or `--quick` (360x240, 5 repeats).
 """
@@ -57,11 +59,12 @@ def main() -> None:
     t = time.perf_counter()
     jax.block_until_ready(frame(scene, prep, scene.flames[:, 0], jax.random.key(0)))
     frame_compile_s = time.perf_counter() - t
-    frames = []
+    frames, cpu = [], []
     for i in range(repeats):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         jax.block_until_ready(frame(scene, prep, scene.flames[:, i % 20], jax.random.key(i)))
         frames.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
     t = time.perf_counter()
     for i in range(20):
         jax.block_until_ready(frame(scene, prep, scene.flames[:, i], jax.random.key(100 + i)))
@@ -78,6 +81,7 @@ def main() -> None:
         ("static part (per sequence), median s", f"{static_med:.3f}"),
         ("frame: compile + first run s", f"{frame_compile_s:.2f}"),
         ("frame (static cached), median s", f"{frame_med:.3f}"),
+        ("frame (static cached), median process CPU s (both cores)", f"{statistics.median(cpu):.3f}"),
         ("peer: frame recomputing the static part, s", f"{frame_med + static_med:.3f}"),
         ("ratio peer / frame", f"{(frame_med + static_med) / frame_med:.2f}x"),
         ("20 frames of animation (compiled) s", f"{animation_s:.2f}"),

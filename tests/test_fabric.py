@@ -186,3 +186,15 @@ def test_rasterizer_matches_brute_force_ray_caster():
     assert np.sum(hit != ours) <= 2 and hit.sum() > 100
     both = hit & ours
     np.testing.assert_allclose(np.asarray(gb.distance)[both], nearest[both], atol=_DEPTH_TOL)
+
+
+def test_single_lobe_shading_equals_full_brdf_for_one_lobe_texels():
+    from jaxrender.fabric import shade_single_lobe
+
+    t = _texel(3, two=False)
+    wi = jnp.asarray(np.stack([_dirs(5, seed=s, z_min=-0.3) for s in range(3)]))
+    wo = jnp.asarray(_dirs(3, seed=7))
+    w = jnp.asarray(np.random.default_rng(4).uniform(0.5, 1.5, (3, 5, 3)))
+    frame = _frame(3)
+    np.testing.assert_allclose(jax.jit(shade_single_lobe)(t, frame, wo, wi, w), jax.jit(shade_samples)(t, frame, wo, wi, w),
+                               rtol=1e-12, atol=1e-15)

@@ -13,5 +13,6 @@ from ._shading import lookup_texels as lookup_texels
 from ._shading import mip_level as mip_level
 from ._shading import shade_fabric as shade_fabric
 from ._shading import shade_samples as shade_samples
+from ._shading import shade_single_lobe as shade_single_lobe
 from ._shading import stack_materials as stack_materials
 from ._shading import tangent_frames as tangent_frames

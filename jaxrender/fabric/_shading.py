@@ -33,10 +33,10 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._math import dot, normalize
-from ..brdf import BTFTexel, reflectance
+from ..brdf import BTFTexel, lobe_reflectance, reflectance
 
-__all__ = ["MaterialSet", "stack_materials", "mip_level", "lookup_texels", "shade_samples", "shade_fabric",
-           "tangent_frames"]
+__all__ = ["MaterialSet", "stack_materials", "mip_level", "lookup_texels", "shade_samples", "shade_single_lobe",
+           "shade_fabric", "tangent_frames"]
 
 
 class MaterialSet(eqx.Module):
@@ -131,6 +131,20 @@ def shade_samples(texel: BTFTexel, frame: Float[Array, "N 3 3"], wo: Float[Array
     t = jax.tree_util.tree_map(lambda a: a[:, None], texel)
     r = reflectance(t, wi_l, wo_l)
     return jnp.sum(r * weight, axis=1) / jnp.pi
+
+
+def shade_single_lobe(texel: BTFTexel, frame: Float[Array, "N 3 3"], wo: Float[Array, "N 3"],
+                      wi: Float[Array, "N K 3"], weight: Float[Array, "N K 3"]) -> Float[Array, "N 3"]:
+    """`shade_samples` for texels known to have one lobe (weight 0): the same R of
+    `jaxrender.brdf` (rho_d cos_i to lobe 0's normal + `lobe_reflectance` of lobe 0) without
+    evaluating the unused second lobe."""
+    wo_l, wi_l = _local_dirs(frame, wo, wi)
+    lobe = jax.tree_util.tree_map(lambda a: a[:, None], texel.lobe0)
+    n0 = normalize(lobe.normal)
+    cos_i = jnp.maximum(dot(wi_l, n0), 0.0)
+    r = texel.rho_d[:, None, :] * cos_i[..., None] + lobe_reflectance(lobe, wi_l, wo_l)
+    geometric = (wi_l[..., 2] > 0) & (wo_l[..., 2] > 0)
+    return jnp.sum(jnp.where(geometric[..., None], r, 0.0) * weight, axis=1) / jnp.pi
 
 
 def shade_fabric(mats: MaterialSet, material: Int[Array, "N"], uv: Float[Array, "N 2"],

@@ -43,7 +43,7 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray
 from .._math import normalize
 from ..brdf import BTFTexel, Lobe
 from ..camera import Camera
-from ..fabric import (MaterialSet, camera_pinhole, depth_map, raster_window, rasterize, shade_fabric, shade_samples,
+from ..fabric import (MaterialSet, camera_pinhole, depth_map, raster_window, rasterize, shade_fabric, shade_single_lobe,
                       spot_pinhole, stack_materials, tangent_frames)
 from ..lights import (EnvMap, QuadLights, env_radiance, quad_light_radiance_at, sample_envmap,
                       sample_quad_lights)
@@ -479,7 +479,7 @@ def _shade_all(mats: MaterialSet, prep: NohPrepared, directions: Array, weights:
     dtype = prep.f_pos.dtype
     floor_frame = jnp.broadcast_to(jnp.asarray([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], dtype=dtype),
                                    (nf, 3, 3))
-    f = shade_samples(prep.f_texel, floor_frame, prep.f_wo, fd, fw)
+    f = shade_single_lobe(prep.f_texel, floor_frame, prep.f_wo, fd, fw)
     return g, f
 
 
