@@ -61,7 +61,7 @@ class TexelFit(eqx.Module):
     sigma_y: Float[Array, "*T"]
     residual: Float[Array, "*T"]   # RMS of R - model over valid observations and channels
     cost: Float[Array, "*T"]       # the solver's objective at the fitted parameters
-    converged: Bool[Array, "*T"]   # the solver met its tolerance (and the texel had observations)
+    converged: Bool[Array, "*T"]   # the solver met its tolerance or fitted exactly (and the texel had observations)
     num_steps: Int[Array, "*T"]
     n_valid: Int[Array, "*T"]
 
@@ -268,7 +268,8 @@ def _solve_jaxopt(fn, theta0, args, max_steps, rtol, atol):
     solver = jaxopt.LevenbergMarquardt(fn, maxiter=max_steps,
                                        stop_criterion="madsen-nielsen", xtol=rtol, gtol=atol, tol=atol,
                                        solver="cholesky", materialize_jac=True, jit=True)
-    value, state = solver.run(theta0, args)
+    with jax.numpy_dtype_promotion("standard"):  # jaxopt multiplies bools into floats internally
+        value, state = solver.run(theta0, args)
     # The loop stops early only when the stopping criterion holds.
     ok = state.iter_num < max_steps
     return value, ok, state.iter_num
@@ -308,7 +309,11 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, "L"], light_dirs:
     cost = 0.5 * jnp.sum(w[None, :] * diff * diff)
     sq = jnp.sum(jnp.where((w > 0)[None, :], diff * diff, 0.0))
     residual = jnp.sqrt(sq / jnp.maximum(3 * n_valid, 1).astype(dt))
-    converged = ok & ~bad & (n_valid > 0)
+    # An exact fit (cost 0, e.g. a black texel) is a global minimum; the trust-region ratio of
+    # predicted to actual reduction is 0/0 there and optimistix never accepts a step to stop on.
+    exact = cost <= jnp.finfo(dt).tiny
+    # (A non-finite solver result falls back to the start, whose cost is what `exact` sees.)
+    converged = ((ok & ~bad) | exact) & (n_valid > 0)
     return TexelFit(rho_d=rho_d, rho_s=rho_s, normal=normal, sigma_x=sx, sigma_y=sy, residual=residual,
                     cost=cost, converged=converged, num_steps=jnp.asarray(steps, jnp.int32),
                     n_valid=n_valid.astype(jnp.int32))
