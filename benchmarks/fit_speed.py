@@ -1,0 +1,199 @@
+"""BTF fit speed (paper 004): 128 x 128 texels x 2160 light directions x RGB.
+
+    python benchmarks/fit_speed.py            # the full case (128 x 128, all 2160 lights)
+    python benchmarks/fit_speed.py --quick    # 32 x 32 x 300 lights
+
+Steps, timed apart:
+1. synthesis + HDR merge in memory (`fitting.synth_maps`, `fitting.synth_observations`: 6 exposures,
+   8-bit codes with shot and read noise, merged as `fitting fit` merges a capture directory);
+2. the fit (`fitting.fit_maps`, chunks of 4096 texels): compilation (the first chunk's shape) apart
+   from the fit of every texel; optimistix and jaxopt backends side by side;
+3. the peer: `scipy.optimize.least_squares` per texel as a user would write it (a Python loop, all
+   10 parameters, default method 'trf' and 2-point Jacobian, a float64 numpy model, the same
+   starting values), on a subset of texels, scaled to texels per second.
+Costs are the fit's objective 0.5 * sum w (R - model)^2 evaluated on the subset for every method.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.optimize
+
+from fitting import LIGHT_DIRECTIONS, stratified_light_subset, synth_maps, synth_observations
+from fitting.fit import fit_maps
+from fitting.lm import basis, initial_theta, project_rho, texel_cost, theta_to_geometry
+from jaxrender.brdf import SIGMA_FLOOR
+
+S_MIN, S_MAX = -12.0, 3.0
+
+
+def numpy_model(x, light_dirs, view_dir):
+    """R (L x 3) of the reciprocal model for x = (rho_d 3, rho_s 3, p, q, s_x, s_y): what a user
+    would write in numpy (checked against jaxrender.brdf.reflectance below)."""
+    rho_d, rho_s = x[:3], x[3:6]
+    n = np.array([x[6], x[7], 1.0])
+    n /= np.linalg.norm(n)
+    sx = SIGMA_FLOOR + np.exp(np.clip(x[8], S_MIN, S_MAX))
+    sy = SIGMA_FLOOR + np.exp(np.clip(x[9], S_MIN, S_MAX))
+    t = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    t /= np.linalg.norm(t)
+    b = np.cross(n, t)
+    h = light_dirs + view_dir
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    hn, ht, hb = h @ n, h @ t, h @ b
+    cos_i, cos_r = light_dirs @ n, view_dir @ n
+    front = hn > 1e-6
+    e = ((ht / sx) ** 2 + (hb / sy) ** 2) / np.where(front, hn, 1.0) ** 2
+    d = np.where(front, np.exp(-np.minimum(e, 80.0)), 0.0)
+    lit = (cos_i > 0) & (cos_r > 0)
+    spec = np.where(lit, d / max(cos_r, 1e-4), 0.0)
+    geo = (light_dirs[:, 2] > 0) & (view_dir[2] > 0)
+    return np.where(geo[:, None], np.outer(np.maximum(cos_i, 0.0), rho_d) + np.outer(spec, rho_s), 0.0)
+
+
+def scipy_fit(ratio, weight, light_dirs, view_dir, x0):
+    w = weight / np.mean(weight[weight > 0]) if np.any(weight > 0) else weight
+    sw = np.sqrt(w)[:, None]
+
+    def residuals(x):
+        return (sw * (ratio - numpy_model(x, light_dirs, view_dir))).ravel()
+
+    return scipy.optimize.least_squares(residuals, x0)
+
+
+def start_vector(ratio, weight, light_dirs, view_dir):
+    r, w = jnp.asarray(ratio), jnp.asarray(weight)
+    th = initial_theta(r, w, light_dirs, view_dir)
+    n, sx, sy = theta_to_geometry(th)
+    wn = w / jnp.mean(jnp.where(w > 0, w, jnp.nan)) if bool(jnp.any(w > 0)) else w
+    rd, rs = project_rho(basis(n, sx, sy, light_dirs, view_dir), r.T, jnp.nan_to_num(wn))
+    return np.concatenate([np.asarray(rd), np.asarray(rs), np.asarray(th)]).astype(np.float64)
+
+
+def timed_fit(obs, solver, chunk):
+    # compile: the first chunk's shape (every chunk is padded to it)
+    h, w = obs.size
+    total = h * w
+    first = min(chunk, total)
+    t0 = time.perf_counter()
+    sub = type(obs)(ratio=obs.ratio.reshape((total,) + obs.ratio.shape[2:])[:first][None],
+                    weight=obs.weight.reshape((total,) + obs.weight.shape[2:])[:first][None],
+                    light_dirs=obs.light_dirs, view_dir=obs.view_dir,
+                    n_valid=obs.n_valid.reshape(-1)[:first][None], n_saturated=obs.n_saturated.reshape(-1)[:first][None],
+                    n_dark=obs.n_dark.reshape(-1)[:first][None])
+    fit_maps(sub, solver=solver, chunk=chunk, progress=False)
+    warm = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    maps = fit_maps(obs, solver=solver, chunk=chunk, progress=False)
+    run = time.perf_counter() - t0
+    return maps, warm, run
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="32 x 32 texels x 300 lights")
+    parser.add_argument("--size", type=int, default=None)
+    parser.add_argument("--lights", type=int, default=None, help="number of lights (default all 2160)")
+    parser.add_argument("--scipy-texels", type=int, default=None)
+    parser.add_argument("--chunk", type=int, default=4096)
+    parser.add_argument("--solvers", default="optimistix,jaxopt")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    size = args.size or (32 if args.quick else 128)
+    n_lights = args.lights or (300 if args.quick else 2160)
+    n_scipy = args.scipy_texels or (8 if args.quick else 24)
+    key = jax.random.key(0)
+    k_maps, k_obs, k_sel = jax.random.split(key, 3)
+    ids = np.arange(len(LIGHT_DIRECTIONS)) if n_lights >= len(LIGHT_DIRECTIONS) else stratified_light_subset(k_sel, n_lights)
+    dirs = jnp.asarray(LIGHT_DIRECTIONS[ids], jnp.float32)
+    print(f"# fit speed: {size}x{size} texels x {len(ids)} lights x RGB; devices {jax.devices()}; "
+          f"{platform.processor() or platform.machine()}", flush=True)
+
+    t0 = time.perf_counter()
+    maps_true = synth_maps(k_maps, (size, size))
+    obs = synth_observations(k_obs, maps_true, dirs, progress=False)
+    jax.block_until_ready(obs.ratio)
+    synth_s = time.perf_counter() - t0
+    print(f"synthesis + merge (in memory): {synth_s:.1f} s", flush=True)
+
+    # the model the scipy peer uses is the toolkit's model
+    from jaxrender.brdf import BTFTexel, reflectance
+    x_chk = np.array([0.3, 0.2, 0.1, 0.6, 0.5, 0.4, 0.1, -0.2, np.log(0.1), np.log(0.2)])
+    n_chk, sx_chk, sy_chk = theta_to_geometry(jnp.asarray(x_chk[6:], jnp.float32))
+    tex = BTFTexel.single(jnp.asarray(x_chk[:3], jnp.float32), jnp.asarray(x_chk[3:6], jnp.float32), n_chk, sx_chk, sy_chk)
+    ref = np.asarray(jax.vmap(lambda wi: reflectance(tex, wi, obs.view_dir))(dirs))
+    np.testing.assert_allclose(numpy_model(x_chk, np.asarray(dirs, np.float64), np.array([0, 0, 1.0])), ref,
+                               rtol=2e-4, atol=2e-5)
+
+    rows = []
+    results = {}
+    for solver in args.solvers.split(","):
+        maps, warm, run = timed_fit(obs, solver, args.chunk)
+        results[solver] = maps
+        rows.append({"method": f"{solver} LM (vmapped, chunks of {args.chunk})", "texels": size * size,
+                     "compile_s": warm, "fit_s": run, "texels_per_s": size * size / run,
+                     "converged": float(np.mean(maps["converged"]))})
+        print(f"{solver}: compile+first chunk {warm:.1f} s, fit {run:.1f} s, "
+              f"converged {np.mean(maps['converged']):.1%}", flush=True)
+
+    # scipy on a subset: the same starting values
+    total = size * size
+    rng = np.random.default_rng(1)
+    subset = np.sort(rng.choice(total, n_scipy, replace=False))
+    ratio = np.asarray(obs.ratio, np.float32).reshape(total, len(ids), 3)
+    weight = np.asarray(obs.weight, np.float32).reshape(total, len(ids))
+    d64 = np.asarray(dirs, np.float64)
+    v64 = np.array([0.0, 0.0, 1.0])
+    costs_scipy, nfev = [], []
+    t_scipy = 0.0
+    for i in subset:
+        x0 = start_vector(ratio[i], weight[i], dirs, obs.view_dir)
+        t0 = time.perf_counter()
+        sol = scipy_fit(ratio[i].astype(np.float64), weight[i].astype(np.float64), d64, v64, x0)
+        t_scipy += time.perf_counter() - t0
+        costs_scipy.append(sol.cost)
+        nfev.append(sol.nfev)
+    scipy_rate = n_scipy / t_scipy
+
+    def subset_costs(maps):
+        out = []
+        for i in subset:
+            r, c = divmod(int(i), size)
+            out.append(float(texel_cost(maps["rho_d"][r, c], maps["rho_s"][r, c], maps["normal"][r, c], maps["sigma_x"][r, c],
+                                        maps["sigma_y"][r, c], ratio[i], weight[i], dirs, obs.view_dir)))
+        return np.array(out)
+
+    for row, solver in zip(rows, args.solvers.split(",")):
+        row["median_cost_subset"] = float(np.median(subset_costs(results[solver])))
+        row["speedup_vs_scipy"] = row["texels_per_s"] / scipy_rate
+    rows.append({"method": "scipy least_squares per texel (trf, 2-point, 10 params)", "texels": n_scipy,
+                 "compile_s": 0.0, "fit_s": t_scipy, "texels_per_s": scipy_rate, "converged": float("nan"),
+                 "median_cost_subset": float(np.median(costs_scipy)), "speedup_vs_scipy": 1.0,
+                 "median_nfev": float(np.median(nfev))})
+    scaled = total / scipy_rate
+    print()
+    print(f"| method | texels | compile s | fit s | texels/s | x scipy | median cost (subset of {n_scipy}) | converged |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['method']} | {r['texels']} | {r['compile_s']:.1f} | {r['fit_s']:.1f} | {r['texels_per_s']:.1f} | "
+              f"{r['speedup_vs_scipy']:.1f} | {r['median_cost_subset']:.5g} | {r['converged']:.1%} |")
+    print()
+    print(f"synthesis + merge (in memory, apart from the fit): {synth_s:.1f} s; scipy scaled to all "
+          f"{total} texels: {scaled:.0f} s")
+    if args.json:
+        args.json.write_text(json.dumps({"rows": rows, "synth_merge_s": synth_s, "size": size, "lights": len(ids)},
+                                        indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
