@@ -25,7 +25,7 @@ from ..lights._sun import Sun, sun_direction
 from ..shadows import heightfield_shadow
 from ..sky import Atmosphere, optical_depth, sky_radiance
 from ..terrain import TerrainMaps, build_terrain_maps, plan_quads, quad_capacities, render_terrain, shadow_steps
-from ..terrain._dust import DustParticles, composite_billboards, dust_particles
+from ..terrain._dust import DustParticles, composite_billboards
 from ..textures import bilinear
 
 __all__ = ["DesertScene", "desert_scene", "default_camera", "render_desert", "desert_frame", "gallery_section",
@@ -202,11 +202,26 @@ def _sky(sun_elevation: float, sun_azimuth: float):
     return sky_for_sun(sun_elevation, sun_azimuth)
 
 
-_dust_jit = jax.jit(dust_particles, static_argnames=("count", "steps", "drift", "lift", "jitter", "size", "region"))
+@functools.partial(jax.jit, static_argnames=("count", "steps", "tiling"))
+def _dust_jit(key: Array, dune_height: Array, ripple_height: Array, *, count: int, steps: int, tiling: float) -> DustParticles:
+    from sims.dust import DustParams, simulate_dust
+
+    params = DustParams(drift=0.35, lift=0.05, jitter=(0.1, 0.1, 0.03), size_scale=0.5)
+    positions, sizes = simulate_dust(key, dune_height, ripple_height, n_particles=count, steps=steps, params=params,
+                                     ripple_tiling=tiling)
+    n_rows, n_cols = dune_height.shape
+    last = positions[-1]
+    xy = jnp.stack([jnp.mod(last[:, 0], n_cols), jnp.mod(last[:, 1], n_rows)], axis=-1)  # the dunes are periodic
+    radius = jnp.maximum(sizes[-1], 0.1 * params.size_scale)
+    centre = jnp.concatenate([xy, (last[:, 2] + radius)[:, None]], axis=-1)  # the cloud sits on the surface
+    return DustParticles(centre, radius, jnp.full(radius.shape, 0.1, radius.dtype))
 
 
 def _dust(scene: DesertScene, count: int, steps: int, seed: int) -> DustParticles:
-    return _dust_jit(jax.random.key(seed + 11), scene.maps, scene.ripple_height, count=count, steps=steps)
+    """Eq. 7 particles from `sims.dust` (the last step of each track), as billboard clouds."""
+    tiling = scene.maps.texels / scene.ripple_height.shape[0]
+    return _dust_jit(jax.random.key(seed + 11), scene.dune_height, scene.ripple_height, count=count, steps=steps,
+                     tiling=float(tiling))
 
 
 def render_desert(*, width: int = 720, height: int = 480, ripples: bool = True, lod: bool = True,

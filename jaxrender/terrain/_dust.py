@@ -100,9 +100,10 @@ def composite_billboards(image: Float[Array, "H W 3"], depth: Float[Array, "H W"
         c0 = jnp.floor(cx).astype(jnp.int32)
         r0 = jnp.floor(cy).astype(jnp.int32)
         # patch of pixels (r0 - m .. r0 + m, c0 - m .. c0 + m) in image coordinates, + m in padded ones
-        start_r = jnp.clip(r0, 0, h - 1)  # padded row start_r + k is image row start_r + k - m
-        start_c = jnp.clip(c0, 0, w - 1)
-        patch = jax.lax.dynamic_slice(img, (start_r, start_c, 0), (size, size, 3))
+        start_r = jnp.clip(r0, 0, h - 1).astype(jnp.int32)  # padded row start_r + k is image row start_r + k - m
+        start_c = jnp.clip(c0, 0, w - 1).astype(jnp.int32)
+        zero = jnp.zeros((), jnp.int32)
+        patch = jax.lax.dynamic_slice(img, (start_r, start_c, zero), (size, size, 3))
         dpatch = jax.lax.dynamic_slice(dep, (start_r, start_c), (size, size))
         py = start_r.astype(dtype) + off + 0.5  # pixel centres of the patch rows
         px = start_c.astype(dtype) + off + 0.5
@@ -111,7 +112,7 @@ def composite_billboards(image: Float[Array, "H W 3"], depth: Float[Array, "H W"
         alpha = jnp.where((dpatch > dist[i]) & (zview[i] > 0), alpha, 0.0)[..., None]
         colour = sky_part + lit[i] * sun_part
         patch = patch * (1 - alpha) + alpha * jnp.reshape(colour, rgb3)
-        return jax.lax.dynamic_update_slice(img, patch, (start_r, start_c, 0)), None
+        return jax.lax.dynamic_update_slice(img, patch, (start_r, start_c, zero)), None
 
-    img, _ = jax.lax.scan(draw, img, order)
+    img, _ = jax.lax.scan(draw, img, order.astype(jnp.int32))
     return img[m:m + h, m:m + w]
