@@ -252,11 +252,13 @@ def _expose(key, radiance_rel, exposures, sensor: Sensor):
     dtype = radiance_rel.dtype
     t = jnp.reshape(jnp.asarray(exposures, dtype), (-1,) + (1,) * radiance_rel.ndim)
     linear = radiance_rel[None] * (sensor.gain * t)
-    z = jax.random.normal(key, (2,) + linear.shape, dtype)  # one draw: shot and read noise
+    # Shot noise (Gaussian approximation of Poisson: variance = electrons) plus read noise
+    # (variance read_noise^2) are independent Gaussians: one draw of their sum. Random numbers
+    # dominate the cost of a synthetic capture, so one draw per sample, not two.
     electrons = jnp.maximum(linear, 0.0) * sensor.full_well
-    shot = jnp.sqrt(electrons) * z[0]
-    read = sensor.read_noise * z[1]
-    noisy = jnp.clip(linear + sensor.noise * (shot + read) / sensor.full_well, 0.0, 1.0)
+    sigma = jnp.sqrt(electrons + jnp.square(sensor.read_noise)) / sensor.full_well
+    z = jax.random.normal(key, linear.shape, dtype)
+    noisy = jnp.clip(linear + sensor.noise * sigma * z, 0.0, 1.0)
     if sensor.response == "srgb":
         noisy = linear_to_srgb(noisy).astype(dtype)
     # The ADC: round to 2^bits - 1 steps (bits = 0: float codes). A traced `bits`, so 8-bit,
