@@ -2,7 +2,12 @@
 
 A texel of level l+1 summarizes the specular slope distributions of its 4 children at level l
 (each with 1 or 2 lobes) as a mixture of at most 2 anisotropic lobes, fitted by EM; `rho_d` is
-averaged. Everything here is written for ONE coarse texel and vmapped over texels.
+averaged. The kernel is batched over texels with the texel axis LAST (structure of arrays, see
+"Layout" below); `em_texel` is the one-texel call of the same kernel.
+
+Diffuse: `jaxrender.brdf` shades the diffuse term of a two-lobe texel with the weight-averaged
+normal normalize((1 - w) N0 + w N1), so a coarse texel whose lobes point in two directions keeps
+the children's mean normal for rho_d cos(theta_i).
 
 Slope space
 -----------
@@ -41,9 +46,9 @@ lobe: the group's expected log-density is multiplied by 16 before the softmax ov
 which sharpens the lobe-to-component assignment (with 1 the soft assignment lets both
 components collapse onto the moment match where the lobes form two close clusters). Without
 grouping, EM overfits the 3x3 node lattice (e.g. a narrow component on the central row of nodes),
-a likelihood optimum of the nodes but not a good summary of the lobes. The EM runs only for texels whose one-
-lobe summary is not good enough (below), initialized from the most energetic child lobe and the
-child lobe maximizing energy x squared normalized distance from it.
+a likelihood optimum of the nodes but not a good summary of the lobes. The EM runs only for
+texels whose one-lobe summary is not good enough (below), initialized from the most energetic
+child lobe and the child lobe maximizing energy x squared normalized distance from it.
 
 Plain EM never drives a weight to 0, so the number of lobes is chosen by an L2 rule. Let p be the
 children's slope density (each child lobe as the Gaussian of its transported nodes' moments, with
@@ -84,7 +89,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxrender._math import normalize
-from jaxrender.brdf import SIGMA_FLOOR, BTFTexel, Lobe, tangent_frame
+from jaxrender.brdf import SIGMA_FLOOR, BTFTexel, Lobe
 
 __all__ = ["GaussianMixture", "EMInfo", "em_fit", "weighted_log_likelihood", "moment_match", "lobe_slope_nodes",
            "em_texel", "em_texels", "moment_matched_texel", "moment_matched_texels", "mip_texel", "gather_children", "em_downsample",
@@ -184,7 +189,8 @@ def _m_step(x0, x1, w, resp, params, var_floor):
 
 
 def _em_core(x0, x1, w, params, *, iterations, tol, var_floor, virtual, run):
-    """EM on `N` independent problems: nodes `G Q N`, parameters `K N`, `run` `N`.
+    """EM on `N` independent problems: nodes `G Q N`, parameters `K N`, `run` `N` (problems not run
+    count as converged).
     Returns (parameters, log-likelihood N, iterations N, converged N, responsibilities G K N)."""
     w = w / jnp.maximum(jnp.sum(w, axis=(0, 1)), _TINY)[None, None]
     mass = jnp.sum(w, axis=1)                                                                     # G N
@@ -217,7 +223,7 @@ def _em_core(x0, x1, w, params, *, iterations, tol, var_floor, virtual, run):
     state = (jnp.zeros((), jnp.int32), tuple(params), -inf, inf, jnp.zeros((n,), jnp.int32))
     _, params, previous, current, count = jax.lax.while_loop(cond, body, state)
     resp, lse = _e_step(x0, x1, qn, params, virtual)
-    return params, loglik(lse), count, jnp.abs(current - previous) < tol, resp
+    return params, loglik(lse), count, ~run | (jnp.abs(current - previous) < tol), resp
 
 
 def _grouped(x, w):

@@ -148,6 +148,19 @@ def test_grouped_em_equals_closed_form_hierarchical_em():
     np.testing.assert_allclose(gmm.variances, v, rtol=1e-10)
 
 
+def test_component_tangent_frame_matches_the_brdf():
+    """The kernel's structure-of-arrays frame is jaxrender.brdf.tangent_frame, degenerate N = x included."""
+    from fitting.em import _tangent_frame3
+    from jaxrender.brdf import tangent_frame
+
+    rng = np.random.default_rng(3)
+    n = np.concatenate([rng.normal(size=(20, 3)), [[1.0, 0.0, 0.0], [0.0, 0.0, 2.0]]])
+    expected = jax.jit(tangent_frame)(jnp.asarray(n))
+    got = jax.jit(lambda v: _tangent_frame3(v[:, 0], v[:, 1], v[:, 2]))(jnp.asarray(n))
+    for e, g in zip(expected, got):
+        np.testing.assert_allclose(np.stack(g, -1), e, atol=1e-12)
+
+
 def test_moment_match_is_the_one_component_maximum():
     x, *_ = _mixture_samples(jax.random.PRNGKey(4), n=200)
     w = np.linspace(0.5, 1.5, len(x))
