@@ -45,9 +45,10 @@ from ..brdf import BTFTexel, Lobe
 from ..camera import Camera
 from ..fabric import (MaterialSet, camera_pinhole, depth_map, raster_window, rasterize, shade_fabric, shade_single_lobe,
                       spot_pinhole, stack_materials, tangent_frames)
-from ..lights import (EnvMap, QuadLights, env_radiance, quad_light_radiance_at, sample_envmap,
+from ..lights import (EnvMap, QuadLights, env_radiance, sample_envmap,
                       sample_quad_lights)
 from ..shadows import ShadowMap, pcss
+from ..textures import bilinear
 
 __all__ = ["LABELS", "PALETTE", "default_mask", "mask_from_rgb", "procedural_btf", "default_btfs",
            "default_environment", "NohScene", "NohPrepared", "noh_scene", "prepare_noh", "noh_frame",
@@ -256,7 +257,7 @@ FIRE_BASE = 0.95                                                           # fla
 def noh_scene(*, width: int = 720, height: int = 480, frames: int = 20, key: PRNGKeyArray | None = None,
               mask_rgb: np.ndarray | None = None, btfs: dict[str, list[BTFTexel]] | None = None,
               env: EnvMap | None = None, cloth_rows: int = 40, cloth_cols: int = 32, tiles: float = 6.0,
-              flame_size: tuple[int, int] = (96, 48), fire_intensity: float = 12.0, btf_size: int = 32,
+              flame_size: tuple[int, int] = (128, 64), fire_intensity: float = 12.0, btf_size: int = 32,
               pyramid: str = "em") -> NohScene:
     """Assemble the scene; every input not given is the built-in one (module docstring)."""
     from sims.fire import fire_frames
@@ -507,8 +508,6 @@ def noh_frame(scene: NohScene, prep: NohPrepared, emission: Float[Array, "Q H W 
     img = img.at[prep.g_index].set(g + prep.g_static)
     img = img.at[prep.f_index].set(f + prep.f_static)
     img = img.reshape(h, w, 3)
-    from ..textures import bilinear
-
     for i in range(q):  # four fires: unrolled
         img = img + prep.fire_hit[i][..., None] * bilinear(emission[i], prep.fire_uv[i], wrap="clamp")
     return img
