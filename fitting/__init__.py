@@ -20,6 +20,7 @@ from .em import em_texel as em_texel
 from .em import em_texels as em_texels
 from .em import em_downsample as em_downsample
 from .em import moment_matched_texel as moment_matched_texel
+from .em import moment_matched_texels as moment_matched_texels
 from .em import mip_texel as mip_texel
 from .pyramid import build_pyramid as build_pyramid
 from .pyramid import pyramid_levels as pyramid_levels
