@@ -76,10 +76,11 @@ def spot_scene(width: int = PAPER_W, height: int = PAPER_H) -> dict:
 
 
 def sphere_scene(width: int = PAPER_W, height: int = PAPER_H) -> dict:
-    """Fig. 5 / 6(b) / section 5.1: a sphere under one spot light, its shadow shaft in the fog, a floor."""
+    """Fig. 5 / 6(b) / section 5.1: a sphere under one spot light, its shadow shaft in the fog, a floor.
+    The sphere blocks about half of the cone, so the shadow shaft is large (as in the paper's fig. 6)."""
     d = spot_scene(width, height)
     d["spotlights"][0].update({"position": [0.0, 4.8, -0.5], "target": [0.0, 0.0, 0.2]})
-    d["objects"].insert(0, {"type": "sphere", "center": [0.0, 1.9, -0.2], "radius": 0.5,
+    d["objects"].insert(0, {"type": "sphere", "center": [0.0, 2.3, -0.25], "radius": 0.65,
                             "albedo": [0.6, 0.6, 0.6]})
     return d
 
