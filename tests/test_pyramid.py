@@ -12,6 +12,7 @@ import numpy as np
 from fitting import cli
 from fitting.em import em_texels, gather_children, mip_texel, moment_matched_texels
 from fitting.pyramid import build_pyramid, pyramid_levels
+from jaxrender import brdf
 from jaxrender.brdf import BTFTexel, reflectance
 from jaxrender.io import LOBE_CHANNELS, read_btf, write_btf
 
@@ -88,6 +89,18 @@ def test_two_lobe_level_renders_like_its_children():
     err = rendering_errors(children, wi, wo)
     assert err["em"] <= EM_VS_MIP_RATIO * err["mip"], err
     assert err["em"] < err["moment"], err
+
+
+def test_two_lobe_texel_shades_its_diffuse_term_with_the_weighted_normal():
+    """jaxrender.brdf (changed for the pyramid): rho_d cos_i of a two-lobe texel is taken to
+    normalize((1 - w) N0 + w N1), the children's mean normal, not to lobe 0's normal alone."""
+    n0, n1, w = _direction(0.4, 0.0), _direction(0.3, 2.5), 0.3
+    lobe = lambda n: brdf.Lobe(jnp.zeros(3), jnp.asarray(n), jnp.asarray(0.1), jnp.asarray(0.1))  # noqa: E731
+    texel = BTFTexel(jnp.array([0.2, 0.4, 0.6]), lobe(n0), lobe(n1), jnp.asarray(w))
+    wi, wo = _direction(0.5, 1.0), _direction(0.2, 4.0)
+    nd = (1 - w) * n0 + w * n1
+    expected = np.array([0.2, 0.4, 0.6]) * max(wi @ nd / np.linalg.norm(nd), 0.0)
+    np.testing.assert_allclose(jax.jit(reflectance)(texel, jnp.asarray(wi), jnp.asarray(wo)), expected, rtol=1e-12)
 
 
 def _level0(size, key):
