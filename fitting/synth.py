@@ -361,6 +361,11 @@ def synth_capture(out_dir: str | os.PathLike, *, key: PRNGKeyArray, size: tuple[
     end (capture.json written last inside it), so an interrupted run leaves nothing that looks
     complete. An existing `out_dir` is replaced only if it is empty or a previous capture.
     `lights`: "all" (the paper's 2160) or a number (a stratified subset chosen by `key`).
+
+    The same observations without the disk: with `k_maps, k_lights, k_sel = jax.random.split(key, 3)`,
+    `synth_observations(k_lights, synth_maps(k_maps, size), LIGHT_DIRECTIONS[ids], sensor=...)`
+    where `ids = stratified_light_subset(k_sel, lights)` (or all 2160); the truth's btf.json
+    records `light_indices`.
     """
     from tqdm.auto import tqdm
 
