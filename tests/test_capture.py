@@ -158,6 +158,23 @@ def test_every_problem_is_reported_at_once(tmp_path):
         assert fragment in joined
 
 
+def test_fit_cli_prints_every_problem_and_exits_2(tmp_path, capsys):
+    """Through the command line: all problems, one line each, exit code 2, nothing written."""
+    from fitting.cli import main as fitting_main
+
+    make_capture(tmp_path / "capture")
+    edit_manifest(tmp_path / "capture", lambda m: (m["lights"][1].update(theta_deg=90), m["white"]["images"].pop()))
+    (tmp_path / "capture" / "images/l2_e0.png").unlink()
+    assert fitting_main(["fit", str(tmp_path / "capture"), "--out", str(tmp_path / "btf")]) == 2
+    err = capsys.readouterr().err.strip().split("\n")
+    assert len(err) == 3, err
+    assert err[0].startswith("fitting fit: error: ")
+    for fragment in ("lights[1].theta_deg: 90 is at or below the horizon", "white.images: 2 images for 3 exposures",
+                     f"{tmp_path / 'capture' / 'images/l2_e0.png'}: missing image"):
+        assert sum(fragment in line for line in err) == 1, (fragment, err)
+    assert not (tmp_path / "btf").exists()
+
+
 def test_images_must_agree_when_the_manifest_size_is_bad(tmp_path):
     make_capture(tmp_path)
     edit_manifest(tmp_path, lambda m: m.pop("size"))
