@@ -147,8 +147,9 @@ def test_levels_blend_shading_results_not_parameters():
     def at(lam):
         return shade_fabric(mats, zero, uv, jnp.asarray([[2.0 ** lam, 0.0]]), dy, _frame(1), wo, wi, w)
 
-    a = shade_samples(jax.tree_util.tree_map(lambda x: x[0], lvl0), _frame(1), wo, wi, w)
-    b = shade_samples(jax.tree_util.tree_map(lambda x: x[0], lvl1), _frame(1), wo, wi, w)
+    shade = jax.jit(shade_samples)
+    a = shade(jax.tree_util.tree_map(lambda x: x[0], lvl0), _frame(1), wo, wi, w)
+    b = shade(jax.tree_util.tree_map(lambda x: x[0], lvl1), _frame(1), wo, wi, w)
     np.testing.assert_allclose(at(0.0), a, rtol=1e-12)
     np.testing.assert_allclose(at(1.0), b, rtol=1e-12)
     np.testing.assert_allclose(at(0.25), 0.75 * a + 0.25 * b, rtol=1e-12)
