@@ -125,7 +125,19 @@ def horizon_map(height: Float[ArrayLike, "H W"], *, directions: int = 8, texel_s
                             for (ex, ey), lk in zip(steps, lengths)])
         return jnp.maximum(best, slopes)
 
-    best = jax.lax.fori_loop(1, min(2**j0, n_path + 1), step, jnp.zeros((directions, rows, cols), height.dtype))
+    lattice = all(ex == round(ex) and ey == round(ey) for ex, ey in steps)
+    k_end = min(2**j0, n_path + 1)
+    if lattice:  # static shifts, unrolled: XLA fuses the whole near search into one pass per direction
+        near_best = []
+        for (ex, ey), lk in zip(steps, lengths):
+            b = jnp.zeros_like(height)
+            for k in range(1, k_end):
+                oy, ox = (k * int(ey)) % rows, (k * int(ex)) % cols
+                b = jnp.maximum(b, (tiled[oy:oy + rows, ox:ox + cols] - height) * (1.0 / (k * lk)))
+            near_best.append(b)
+        best = jnp.stack(near_best)
+    else:
+        best = jax.lax.fori_loop(1, k_end, step, jnp.zeros((directions, rows, cols), height.dtype))
     if 2**j0 > n_path:
         return best
 
@@ -133,7 +145,6 @@ def horizon_map(height: Float[ArrayLike, "H W"], *, directions: int = 8, texel_s
     bands = [_band_max(height, ex, ey, n_bands) for ex, ey in steps]
     n_lanes = directions * rows * cols
     cap = capacity or max(1, n_lanes // 8)
-    lattice = all(ex == round(ex) and ey == round(ey) for ex, ey in steps)
     length_flat = jnp.broadcast_to(jnp.asarray(lengths, dtype=height.dtype)[:, None, None], (directions, rows, cols)).ravel()
     ex_all = jnp.asarray([e[0] for e in steps], dtype=height.dtype)
     ey_all = jnp.asarray([e[1] for e in steps], dtype=height.dtype)
