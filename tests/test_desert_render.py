@@ -108,3 +108,13 @@ def test_culling_removes_quads_and_keeps_image(small_desert):
     assert sum(caps_lod[1:]) > 0  # some quads really are at coarser levels
     diff = np.mean(np.abs(to_display(lod) - to_display(full)))
     assert 0 < diff <= LOD_MEAN_DIFF_MAX, diff
+
+
+def test_cli_bad_input_exits_2(tmp_path, capsys):
+    from jaxrender.cli import main
+
+    assert main(["desert", "--out", str(tmp_path / "frame.txt")]) == 2
+    assert "frame.txt" in capsys.readouterr().err
+    assert main(["desert", "--out", str(tmp_path / "missing" / "frame.png")]) == 2
+    assert main(["desert", "--out", str(tmp_path / "frame.png"), "--texels", "12"]) == 2
+    assert not list(tmp_path.iterdir())  # no partial output
