@@ -156,7 +156,9 @@ def test_gradients_match_central_differences(method):
     if method == "raymarch":
         render = lambda s: render_raymarch(s, samples=48)  # noqa: E731
     else:
-        render = lambda s: render_planes(s, planes=12, subplanes=2, prune=False)  # noqa: E731
+        # tables=False: with tables the parameter derivative is the closed form's at the looked-up
+        # coordinates by design (differs from the table's own slope by its interpolation error)
+        render = lambda s: render_planes(s, planes=12, subplanes=2, prune=False, tables=False)  # noqa: E731
 
     @jax.jit
     def loss(p):

@@ -60,9 +60,11 @@ def raymarch_scattering(scene: ShaftsScene, dirs: Float[Array, "N 3"], surface_t
     return total
 
 
-def render_raymarch(scene: ShaftsScene, *, samples: int = 180, batch_size: int = 256) -> Float[Array, "H W 3"]:
+def render_raymarch(scene: ShaftsScene, *, samples: int = 180, batch_size: int = 256, return_parts: bool = False
+                    ) -> Float[Array, "H W 3"]:
     """Exact-reference image (H, W, 3): surfaces (shadow rays, two-sided Lambert, extinction) plus
-    the ray-marched in-scattering of every light. Jittable and differentiable."""
+    the ray-marched in-scattering of every light (`samples` per light and pixel, inside the
+    light's cone). Jittable and differentiable. return_parts: also return (surface, scattering)."""
     cam = scene.camera
     dirs = cam.primary_rays()
     t, normals, albedo = cast_rays(cam.eye, dirs, scene.prims)
@@ -71,4 +73,7 @@ def render_raymarch(scene: ShaftsScene, *, samples: int = 180, batch_size: int =
     surface_t = jnp.where(jnp.isfinite(t), t, FAR)
     flat = raymarch_scattering(scene, dirs.reshape((-1, 3)), surface_t.reshape((-1,)), samples=samples,
                                batch_size=batch_size)
-    return surface + flat.reshape(surface.shape)
+    scattering = flat.reshape(surface.shape)
+    if return_parts:
+        return surface + scattering, (surface, scattering)
+    return surface + scattering
