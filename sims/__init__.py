@@ -25,3 +25,11 @@ from .dust import dust_sizes as dust_sizes
 from .dust import init_dust as init_dust
 from .dust import sample_periodic as sample_periodic
 from .dust import simulate_dust as simulate_dust
+from .fire import fbm as fbm
+from .fire import fire_frames as fire_frames
+from .fire import gradient_noise as gradient_noise
+from .fire import permutation_table as permutation_table
+from .fire import turbulence as turbulence
+from .cloth import ClothMesh as ClothMesh
+from .cloth import drape_cloth as drape_cloth
+from .cloth import simulate_cloth as simulate_cloth

@@ -4,3 +4,4 @@ from ._shafts_scene import RENDER_DEFAULTS as RENDER_DEFAULTS
 from ._shafts_scene import ShaftsSceneWarning as ShaftsSceneWarning
 from ._shafts_scene import load_shafts_scene as load_shafts_scene
 from ._shafts_scene import shafts_scene_from_dict as shafts_scene_from_dict
+from .noh import render_noh as render_noh
