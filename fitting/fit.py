@@ -2,7 +2,8 @@
 
 `fit_capture(CAPTURE_DIR, BTF_DIR)` loads and validates the capture (nothing is written when it is
 malformed), merges the exposure brackets, fits every texel with `fitting.lm.fit_texels` in chunks
-of `chunk` texels (each chunk's texel axis sharded over all local JAX devices: `NamedSharding` on a 1-D mesh),
+of `chunk` texels (each chunk's texels sharded over all local JAX devices: `NamedSharding` on a 1-D mesh; each
+device fits its share in tiles whose size does not depend on the device count),
 and writes the BTF directory: level 0 through `jaxrender.io.write_btf` (`btf.json` last), PNG
 previews, then the EM pyramid (`fitting.pyramid.build_pyramid`, which rewrites `btf.json` last).
 
@@ -32,39 +33,58 @@ from jaxrender.io import atomic_path, write_btf, write_btf_previews
 
 from .lm import DEFAULT_MAX_STEPS, SOLVERS, TexelFit, default_tolerances, fit_texels
 
-__all__ = ["fit_capture", "fit_observations", "fit_maps", "level0_channels", "DEFAULT_CHUNK"]
+__all__ = ["fit_capture", "fit_observations", "fit_maps", "level0_channels", "DEFAULT_CHUNK", "TILE"]
 
 DEFAULT_CHUNK = 4096
+TILE = 512  # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done
 PARTIAL = ".partial"
 _FIELDS = ("rho_d", "rho_s", "normal", "sigma_x", "sigma_y", "residual", "cost", "converged", "num_steps", "n_valid")
 
 
-@functools.lru_cache(maxsize=None)
-def _sharded_fit(n_devices: int, model: str, solver: str, max_steps: int):
-    """`fit_texels` with the texel axis sharded over the first `n_devices` local devices.
+def _layout(chunk: int, n_devices: int) -> tuple[int, int]:
+    """(tile, texels per device) of a chunk: every device fits whole tiles of `tile` texels.
 
-    A `NamedSharding` over a 1-D mesh; the partitioner splits the vmapped texel axis, so each
-    device runs its share of every chunk (the solver's loop ends when every texel is done).
-    (`jax.shard_map` is not used: optimistix/lineax structure checks reject its varying types.)
+    The tile size depends on the chunk only, never on the device count, so each texel is fitted
+    by the same compiled tile program (same vector shapes, same rounding) on 1 or N devices.
+    """
+    tile = min(TILE, chunk)
+    per_device = -(-chunk // (n_devices * tile)) * tile
+    return tile, per_device
+
+
+@functools.lru_cache(maxsize=None)
+def _sharded_fit(n_devices: int, tile: int, model: str, solver: str, max_steps: int):
+    """`fit_texels` over `D x P` texels, axis 0 sharded over the first `n_devices` local devices.
+
+    A `NamedSharding` over a 1-D mesh: device d fits row d, tile by tile (`lax.map` over tiles of
+    `tile` texels, each one vmapped Levenberg-Marquardt solve). (`jax.shard_map` is not used:
+    optimistix/lineax structure checks reject its varying-axis types.)
     """
     devices = np.asarray(jax.local_devices()[:n_devices])
     mesh = jax.sharding.Mesh(devices, ("texels",))
     shard = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("texels"))
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
 
+    def per_device(ratio, weight, light_dirs, view_dir):
+        tiles = (ratio.reshape((-1, tile) + ratio.shape[1:]), weight.reshape((-1, tile) + weight.shape[1:]))
+        out = jax.lax.map(lambda rw: fit_texels(rw[0], rw[1], light_dirs, view_dir, model=model, solver=solver,
+                                                max_steps=max_steps), tiles)
+        return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
+
     def fn(ratio, weight, light_dirs, view_dir):
-        return fit_texels(ratio, weight, light_dirs, view_dir, model=model, solver=solver, max_steps=max_steps)
+        return jax.vmap(per_device, in_axes=(0, 0, None, None))(ratio, weight, light_dirs, view_dir)
 
     return jax.jit(fn, in_shardings=(shard, shard, replicated, replicated), out_shardings=shard), shard
 
 
-def _chunk_fit(ratio, weight, light_dirs, view_dir, *, model, solver, max_steps) -> dict[str, np.ndarray]:
+def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_steps) -> dict[str, np.ndarray]:
+    """Fit `n_devices * per_device` texels (already padded); returns flat numpy fields."""
     n_dev = jax.local_device_count()
-    fn, shard = _sharded_fit(n_dev, model, solver, max_steps)
-    ratio = jax.device_put(ratio, shard)
-    weight = jax.device_put(weight, shard)
+    fn, shard = _sharded_fit(n_dev, tile, model, solver, max_steps)
+    ratio = jax.device_put(ratio.reshape((n_dev, -1) + ratio.shape[1:]), shard)
+    weight = jax.device_put(weight.reshape((n_dev, -1) + weight.shape[1:]), shard)
     out: TexelFit = fn(ratio, weight, jnp.asarray(light_dirs), jnp.asarray(view_dir))
-    return {name: np.asarray(getattr(out, name)) for name in _FIELDS}
+    return {name: np.asarray(getattr(out, name)).reshape((-1,) + getattr(out, name).shape[2:]) for name in _FIELDS}
 
 
 def _fingerprint(obs, settings: dict) -> str:
@@ -128,7 +148,8 @@ def fit_maps(obs, *, solver: str = "optimistix", chunk: int = DEFAULT_CHUNK, max
     ratio = np.asarray(obs.ratio).reshape(total, n_lights, 3)
     weight = np.asarray(obs.weight).reshape(total, n_lights)
     n_dev = jax.local_device_count()
-    padded = -(-min(chunk, total) // n_dev) * n_dev  # one shape for every chunk: one compilation
+    tile, per_device = _layout(min(chunk, total), n_dev)
+    padded = per_device * n_dev  # one shape for every chunk: one compilation
     starts = list(range(0, total, chunk))
     settings = {"solver": solver, "chunk": chunk, "max_steps": max_steps, "model": model,
                 "dtype": str(ratio.dtype)}
@@ -146,8 +167,8 @@ def fit_maps(obs, *, solver: str = "optimistix", chunk: int = DEFAULT_CHUNK, max
         result = _load_chunk(path, count) if path is not None and path.is_file() else None
         if result is None:
             idx = np.minimum(np.arange(start, start + padded), start + count - 1)  # pad with the last texel
-            out = _chunk_fit(ratio[idx], weight[idx], obs.light_dirs, obs.view_dir, model=model, solver=solver,
-                             max_steps=max_steps)
+            out = _chunk_fit(ratio[idx], weight[idx], obs.light_dirs, obs.view_dir, tile=tile, model=model,
+                             solver=solver, max_steps=max_steps)
             result = {k: v[:count] for k, v in out.items()}
             if path is not None:
                 _save_chunk(path, result)
