@@ -42,25 +42,32 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"# fig. 7, {w} x {h}, 30 x 6 planes, 8-bit; {C.machine()}")
 
     render = eqx.filter_jit(functools.partial(render_planes, planes=30, subplanes=6, quantize_bits=8))
-    times, compiles, maps, image = {}, {}, {}, None
+    times, cpus, compiles, maps, image = {}, {}, {}, {}, None
     with tempfile.TemporaryDirectory() as tmp:
         for k in counts:
             scene_dict = C.stage_scene(k, w, h, base_dir=Path(tmp))
             maps[k] = sum(1 for s in scene_dict["spotlights"] if s.get("light_map"))
             scene = C.load(scene_dict, Path(tmp))
             image, compiles[k], times[k] = C.timed(render, scene, repeats=repeats)
-            print(f"  {k} lights: frame {times[k]:.3f} s", flush=True)
+            cpus[k] = C.timed.cpu
+            print(f"  {k} lights: frame {times[k]:.3f} s, {cpus[k]:.3f} CPU s", flush=True)
     slope, intercept = np.polyfit(counts, [times[k] for k in counts], 1)
-    rows = [[k, maps[k], f"{compiles[k]:.1f}", f"{times[k]:.3f}", f"{times[k] / k:.3f}"] for k in counts]
+    rows = [[k, maps[k], f"{compiles[k]:.1f}", f"{times[k]:.3f}", f"{times[k] / k:.3f}", f"{cpus[k]:.3f}"]
+            for k in counts]
     text = C.table(["lights", "of which with a polka-dot light map", "compile + 1st run s", "median frame s",
-                    "frame s / lights"], rows)
+                    "frame s / lights", "median CPU s per frame (2 cores)"], rows)
     print(text)
     print(f"least squares: frame = {intercept:.3f} s + {slope:.3f} s x lights "
           f"(paper: 1.2 s for 5 lights = 0.4 s objects + 0.8 s shafts, ~0.16 s per light)")
+    c_slope, c_icept = np.polyfit(counts, [cpus[k] for k in counts], 1)
+    print(f"least squares on CPU time: {c_icept:.3f} CPU s + {c_slope:.3f} CPU s x lights")
     if len(counts) >= 4:  # plain and light-mapped lights cost differently: fit both slopes
         design = np.array([[1.0, k - maps[k], maps[k]] for k in counts])
         (a0, b_plain, b_map), *_ = np.linalg.lstsq(design, np.array([times[k] for k in counts]), rcond=None)
         print(f"least squares: frame = {a0:.3f} s + {b_plain:.3f} s x plain lights + {b_map:.3f} s x light-mapped lights")
+        (a0, b_plain, b_map), *_ = np.linalg.lstsq(design, np.array([cpus[k] for k in counts]), rcond=None)
+        print(f"least squares on CPU time: {a0:.3f} CPU s + {b_plain:.3f} CPU s x plain lights "
+              f"+ {b_map:.3f} CPU s x light-mapped lights")
 
     fig, ax = plt.subplots(1, 2, figsize=(12, 3.8), gridspec_kw={"width_ratios": [1.5, 1]})
     ax[0].imshow(np.clip(image / white, 0, 1) ** (1 / 2.2))
@@ -74,7 +81,7 @@ def main(argv: list[str] | None = None) -> dict:
     ax[1].legend()
     path = C.save_figure(fig, "shafts_fig7.png")
     print(f"figure: {path.relative_to(C.REPO)}")
-    return {"lights": counts, "time": times, "slope": float(slope), "intercept": float(intercept)}
+    return {"lights": counts, "time": times, "cpu": cpus, "slope": float(slope), "intercept": float(intercept)}
 
 
 if __name__ == "__main__":

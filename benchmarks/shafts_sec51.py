@@ -47,21 +47,26 @@ def main(argv: list[str] | None = None) -> dict:
     march = eqx.filter_jit(functools.partial(render_raymarch, samples=180))
 
     img8, c8, t8 = C.timed(planes8, scene, repeats=repeats)
+    u8 = C.timed.cpu
     imgf, cf, tf = C.timed(planesf, scene, repeats=repeats)
+    uf = C.timed.cpu
     ref, cr, tr = C.timed(march, scene, repeats=max(1, repeats // 2))
+    ur = C.timed.cpu
 
     lref = C.levels(ref, white)
     rms8 = float(np.sqrt(np.mean((C.levels(img8, white) - lref) ** 2)))
     rmsf = float(np.sqrt(np.mean((C.levels(imgf, white) - lref) ** 2)))
     rows = [
-        ["planes 30 x 6, 8-bit", f"{rms8:.2f} ({100 * rms8 / 256:.2f} %)", f"{c8:.1f}", f"{t8:.3f}", f"{tr / t8:.1f}x"],
-        ["planes 30 x 6, float", f"{rmsf:.2f} ({100 * rmsf / 256:.2f} %)", f"{cf:.1f}", f"{tf:.3f}", f"{tr / tf:.1f}x"],
-        ["ray march 180 samples", "(reference)", f"{cr:.1f}", f"{tr:.3f}", "1x"],
-        ["paper: planes (GeForce2 GTS)", "6.7 (2.6 %)", "-", "0.17", "159x (27 s / 0.17 s)"],
-        ["paper: ray tracing (P-III 733)", "(reference)", "-", "27", "1x"],
+        ["planes 30 x 6, 8-bit", f"{rms8:.2f} ({100 * rms8 / 256:.2f} %)", f"{c8:.1f}", f"{t8:.3f}", f"{tr / t8:.1f}x",
+         f"{u8:.3f}", f"{ur / u8:.1f}x"],
+        ["planes 30 x 6, float", f"{rmsf:.2f} ({100 * rmsf / 256:.2f} %)", f"{cf:.1f}", f"{tf:.3f}", f"{tr / tf:.1f}x",
+         f"{uf:.3f}", f"{ur / uf:.1f}x"],
+        ["ray march 180 samples", "(reference)", f"{cr:.1f}", f"{tr:.3f}", "1x", f"{ur:.3f}", "1x"],
+        ["paper: planes (GeForce2 GTS)", "6.7 (2.6 %)", "-", "0.17", "159x (27 s / 0.17 s)", "-", "-"],
+        ["paper: ray tracing (P-III 733)", "(reference)", "-", "27", "1x", "-", "-"],
     ]
     text = C.table(["method", "RMS diff. to ray march, levels (% of 256)", "compile + 1st run s",
-                    "median frame s", "speed-up vs ray march"], rows)
+                    "median frame s", "speed-up vs ray march", "median CPU s per frame", "CPU speed-up"], rows)
     print(text)
 
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.2))
