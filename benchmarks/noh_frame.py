@@ -14,7 +14,8 @@ What is timed (compile time apart, `block_until_ready`, median of repeats):
 Process CPU time per frame is printed too: on a shared machine it is the stable figure (an idle
 2-core machine runs a frame in about CPU time / 2 when both cores are busy).
 
-Run: `python benchmarks/noh_frame.py` (720x480) or `--quick` (360x240, 5 repeats).
+Run: `python benchmarks/noh_frame.py` (720x480) or `--quick` (360x240, 5 repeats). Writes the last
+frame to benchmarks/figures/noh_frame.png.
 """
 
 from __future__ import annotations
@@ -67,8 +68,17 @@ def main() -> None:
         cpu.append(time.process_time() - c)
     t = time.perf_counter()
     for i in range(20):
-        jax.block_until_ready(frame(scene, prep, scene.flames[:, i], jax.random.key(100 + i)))
+        last = jax.block_until_ready(frame(scene, prep, scene.flames[:, i], jax.random.key(100 + i)))
     animation_s = time.perf_counter() - t
+    # the rendered frame (cf. the paper's Fig. 13), tone mapped like the gallery
+    from pathlib import Path
+
+    from jaxrender.io import write_png
+
+    out = Path(__file__).resolve().parent / "figures" / "noh_frame.png"
+    out.parent.mkdir(exist_ok=True)
+    lum = np.asarray(last).reshape(-1, 3)[np.asarray(prep.g_index)] @ np.asarray([0.2126, 0.7152, 0.0722], np.float32)
+    write_png(out, noh.tonemap_frames(np.asarray(last)[None], exposure=0.3 / float(np.percentile(lum, 90)))[0])
 
     frame_med, static_med = statistics.median(frames), statistics.median(static)
     rows = [
