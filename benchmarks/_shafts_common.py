@@ -168,8 +168,12 @@ def mitsuba_path() -> None:
         sys.path.insert(0, tests)
 
 
-def save_figure(fig, name: str) -> Path:
+def save_figure(fig, name: str, *, quick: bool = False) -> Path:
+    """Save under benchmarks/figures/; `--quick` runs write NAME_quick.png (the committed full-size
+    figures stay untouched)."""
     FIGURES.mkdir(parents=True, exist_ok=True)
+    if quick:
+        name = name.replace(".png", "_quick.png")
     path = FIGURES / name
     fig.savefig(path, dpi=110, bbox_inches="tight")
     return path

@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> dict:
     labels = ax.get_legend_handles_labels()[1] + ax2.get_legend_handles_labels()[1]
     ax.legend(lines, labels, loc="upper center")
     ax.set_title(f"Fig. 4 rerun: one spot light, {w} x {h}, 8-bit")
-    path = C.save_figure(fig, "shafts_fig4.png")
+    path = C.save_figure(fig, "shafts_fig4.png", quick=args.quick)
     print(f"figure: {path.relative_to(C.REPO)}")
     return {"planes": plane_counts, "error8": errors, "errorf": errors_f, "time8": times, "cpu8": cpus, "best": best}
 

@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> dict:
     labels = ax.get_legend_handles_labels()[1] + ax2.get_legend_handles_labels()[1]
     ax.legend(lines, labels, loc="upper center")
     ax.set_title(f"Fig. 5 rerun: sphere under a spot light, {w} x {h}, n = 30")
-    path = C.save_figure(fig, "shafts_fig5.png")
+    path = C.save_figure(fig, "shafts_fig5.png", quick=args.quick)
     print(f"figure: {path.relative_to(C.REPO)}")
 
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.4))
@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> dict:
         a.imshow(np.clip(images8[m] / white, 0, 1) ** (1 / 2.2))
         a.set_title(f"fig. 6({'a' if m == 1 else 'b'}) rerun: m = {m}, 8-bit")
         a.axis("off")
-    path6 = C.save_figure(fig, "shafts_fig6.png")
+    path6 = C.save_figure(fig, "shafts_fig6.png", quick=args.quick)
     print(f"figure: {path6.relative_to(C.REPO)}")
     return {"subplanes": counts, "rms8": rms8, "rms8_lit": rms8_lit, "rmsf": rmsf, "time8": times8, "cpu8": cpus}
 

@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> dict:
     ax[1].set_ylabel("seconds per frame")
     ax[1].set_xticks(counts)
     ax[1].legend()
-    path = C.save_figure(fig, "shafts_fig7.png")
+    path = C.save_figure(fig, "shafts_fig7.png", quick=args.quick)
     print(f"figure: {path.relative_to(C.REPO)}")
     return {"lights": counts, "time": times, "cpu": cpus, "slope": float(slope), "intercept": float(intercept)}
 

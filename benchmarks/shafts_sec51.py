@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> dict:
     ax[2].set_title(f"|difference| in levels (RMS {rms8:.2f} = {100 * rms8 / 256:.2f} %)")
     ax[2].axis("off")
     fig.colorbar(im, ax=ax[2], fraction=0.03)
-    path = C.save_figure(fig, "shafts_sec51.png")
+    path = C.save_figure(fig, "shafts_sec51.png", quick=args.quick)
     print(f"figure: {path.relative_to(C.REPO)}")
     return {"rms8_levels": rms8, "rmsf_levels": rmsf, "t_planes8": t8, "t_planesf": tf, "t_march": tr}
 

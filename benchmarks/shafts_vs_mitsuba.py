@@ -199,7 +199,7 @@ def main(argv: list[str] | None = None) -> dict:
     ax.set_ylabel("relative RMS error vs own converged image")
     ax.legend()
     ax.set_title(f"Light shafts, {w} x {h}: time to equal error")
-    path = C.save_figure(fig, "shafts_vs_mitsuba.png")
+    path = C.save_figure(fig, "shafts_vs_mitsuba.png", quick=args.quick)
     print(f"figure: {path.relative_to(C.REPO)}")
     return {"ratio": ratio, "t_mitsuba": t_mi, "t_mitsuba_spp_fit": t_mi_spp, "ours": ours_best, "slope": slope}
 
