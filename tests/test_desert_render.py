@@ -98,7 +98,7 @@ def test_culling_removes_quads_and_keeps_image(small_desert):
     scene, camera = small_desert
     visible, _ = plan_quads(scene.maps, camera, lod=False, culling=True)
     assert 0 < int(np.sum(np.asarray(visible))) < visible.size  # culling has work to save here
-    kw = dict(sun_elevation=15.0, sun_azimuth=200.0, dust=False, dune_shadows=False)
+    kw = dict(sun_elevation=15.0, sun_azimuth=200.0, dust=False, dune_shadows=False, ripple_shadows=False)
     full = np.asarray(desert_frame(scene, camera, lod=False, culling=False, **kw))
     culled = np.asarray(desert_frame(scene, camera, lod=False, culling=True, **kw))
     assert np.all(np.isfinite(full)) and np.all(np.isfinite(culled))
