@@ -414,8 +414,10 @@ def _stage2(ph, scene: NohScene, gb, rays, t_floor, garment, g_index, f_index, m
 
     # shadows: PCSS per fire, light size = the flame's width, blockers no nearer than `near`
     light_size = float(FIRE_SIZE[0])
-    g_vis = jnp.stack([pcss(sm, g_pos, light_size=light_size, near=near, bias=0.02) for sm in maps], -1)
-    f_vis = jnp.stack([pcss(sm, f_pos, light_size=light_size, near=near, bias=0.02) for sm in maps], -1)
+    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *maps)     # one traced PCSS, vmapped over fires
+    points = jnp.concatenate([g_pos, f_pos], axis=0)
+    vis = jax.vmap(lambda sm: pcss(sm, points, light_size=light_size, near=near, bias=0.02))(stacked).T
+    g_vis, f_vis = vis[:g_pos.shape[0]], vis[g_pos.shape[0]:]
 
     # static environment light (same K directions for every point; the ground hides y < 0)
     s = sample_envmap(scene.env, key, k_env)
