@@ -35,5 +35,5 @@ def test_fitting_notebook_runs():
     assert summary["normal_err_median_deg"] < NORMAL_MEDIAN_TOL_DEG
     assert summary["sigma_rel_err_median"] < SIGMA_MEDIAN_TOL
     assert summary["relight_err"] < RELIGHT_TOL
-    # where it struggles: narrow lobes have larger slope errors than broad ones
-    assert summary["sigma_err_narrow"] > summary["sigma_err_broad"]
+    # where it struggles: slopes of weak-specular texels are less constrained than of strong ones
+    assert summary["sigma_err_weak_specular"] > summary["sigma_err_strong_specular"]
