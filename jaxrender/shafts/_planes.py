@@ -192,11 +192,6 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
         widths = ((0, Hp - H), (0, Wp - W)) + ((0, 0),) * (x.ndim - 2)
         return jnp.pad(x, widths, mode="edge") if value is None else jnp.pad(x, widths, constant_values=value)
 
-    def tiles_of(x):  # (Hp, Wp, ...) -> (n_tiles, ty, tx, ...)
-        x = x.reshape((n_ty, ty, n_tx, tx) + x.shape[2:])
-        x = jnp.moveaxis(x, 2, 1)
-        return x.reshape((n_ty * n_tx, ty, tx) + x.shape[4:])
-
     def untile(x):  # (n_tiles, ty, tx, C) -> (H, W, C)
         x = x.reshape((n_ty, n_tx, ty, tx) + x.shape[3:])
         x = jnp.moveaxis(x, 1, 2).reshape((Hp, Wp) + x.shape[4:])
@@ -212,8 +207,7 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
     vert_dirs = cam.ray_direction(vert_xy)  # (my+1, mx+1, 3)
     vert_cos = _dot(vert_dirs, forward)
 
-    cos_t = tiles_of(pad(cos_psi, None))
-    surf_t = tiles_of(pad(surface_t, 0.0))
+    dirs_pad = pad(dirs, None)
     sub = ((jnp.arange(subplanes, dtype=dtype) + 0.5) / subplanes - 0.5)
     pc = max(1, min(plane_chunk, planes)) if prune else planes  # planes per chunk
     n_chunks = -(-planes // pc)
@@ -232,7 +226,6 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
         lx, ly, lz = light.frame()
         rel_eye = eye - light.position
         local_eye = jnp.stack([_dot(rel_eye, lx), _dot(rel_eye, ly), _dot(rel_eye, lz)])
-        local_dirs = jnp.stack([_dot(dirs, lx), _dot(dirs, ly), _dot(dirs, lz)], axis=-1)
         tan_c = jnp.tan(light.cutoff)
         cut = light.cutoff
         beam = jnp.minimum(light.beam_width, cut)
@@ -251,10 +244,15 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
             t0, t1 = cone_intervals(scene, light, dirs, surface_t, reach)
         else:  # every pixel, every plane
             t0, t1 = jnp.zeros_like(surface_t), jnp.full_like(surface_t, FAR)
-        t0_t = tiles_of(pad(t0 * cos_psi, 0.0))  # view-depth interval of each pixel inside the cone
-        t1_t = tiles_of(pad(t1 * cos_psi, 0.0))
-        ld_t = tiles_of(pad(local_dirs, None))
-        dirs_t = tiles_of(pad(dirs, None))
+        # per pixel: visible-surface distance and the view-depth interval inside the cone; tiles
+        # slice these (and the directions) in place instead of copying the frame into tile order
+        pix = pad(jnp.stack([surface_t, t0 * cos_psi, t1 * cos_psi], axis=-1), 0.0)
+
+        def tile_inputs(row0, col0, lx=lx, ly=ly, lz=lz, pix=pix):
+            d = jax.lax.dynamic_slice(dirs_pad, (row0, col0, 0), (ty, tx, 3))
+            p = jax.lax.dynamic_slice(pix, (row0, col0, 0), (ty, tx, 3))
+            ld = jnp.stack([_dot(d, lx), _dot(d, ly), _dot(d, lz)], axis=-1)
+            return d, ld, _dot(d, forward), p[..., 0], p[..., 1], p[..., 2]
 
         if not g_per_pixel:
             t_vert = r[:, None, None] / vert_cos[None, :, :]  # (n_pad, my+1, mx+1)
@@ -340,16 +338,19 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
         # residuals for every tile (also for the skipped ones: both cond branches must agree).
         tile_fn = jax.checkpoint(tile_fn, policy=jax.checkpoint_policies.nothing_saveable)
 
-        def maybe_tile(args, tile_fn=tile_fn):
-            a0, a1 = args[4], args[5]
+        def maybe_tile(rc, tile_fn=tile_fn, tile_inputs=tile_inputs):
+            row0, col0 = rc
+            d, ld, cpsi, st, a0, a1 = tile_inputs(row0, col0)
+            args = (d, ld, cpsi, st, a0, a1, row0, col0)
             active = jnp.any(a1 > a0)
             zeros = jnp.zeros((ty, tx, 3), dtype=dtype)
             return jax.lax.cond(active, tile_fn, lambda a: zeros, args)
 
         if prune:
-            out = jax.lax.map(maybe_tile, (dirs_t, ld_t, cos_t, surf_t, t0_t, t1_t, tile_rows, tile_cols))
+            out = jax.lax.map(maybe_tile, (tile_rows, tile_cols))
         else:
-            out = chunk_fn((dirs_t[0], ld_t[0], cos_t[0], surf_t[0], 0, 0), 0)[None]
+            d, ld, cpsi, st, _, _ = tile_inputs(0, 0)
+            out = chunk_fn((d, ld, cpsi, st, 0, 0), 0)[None]
         per_light.append(untile(out))
 
     image = frame + sum(per_light)
