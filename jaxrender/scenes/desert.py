@@ -9,7 +9,6 @@ along its rows), one dune cell = 1 length unit. The sky module works y up; `_to_
 from __future__ import annotations
 
 import functools
-import math
 import time
 from pathlib import Path
 
@@ -29,7 +28,7 @@ from ..terrain._dust import DustParticles, composite_billboards
 from ..textures import bilinear
 
 __all__ = ["DesertScene", "desert_scene", "default_camera", "render_desert", "desert_frame", "gallery_section",
-           "sky_for_sun"]
+           "sky_for_sun", "to_display"]
 
 SAND_ALBEDO = (0.60, 0.36, 0.18)  # linear RGB of desert sand (reddish ochre)
 EXPOSURE = 0.55
