@@ -33,7 +33,6 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxrender.brdf import MODELS, SIGMA_FLOOR, BTFTexel, reflectance
@@ -353,7 +352,3 @@ def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_
     """Fit a batch of texels (jitted, vmapped over the leading axis of `ratio` and `weight`)."""
     one = functools.partial(fit_texel, model=model, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol)
     return jax.vmap(one, in_axes=(0, 0, None, None))(ratio, weight, light_dirs, view_dir)
-
-
-def _as_numpy(fit: TexelFit) -> dict[str, np.ndarray]:
-    return {k: np.asarray(v) for k, v in vars(fit).items()}
