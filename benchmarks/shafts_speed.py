@@ -164,7 +164,8 @@ def write_results(block: str) -> None:
     heading = "## Light shafts: speed vs. ray march and Mitsuba 3"
     if SECTION in text:
         start = text.index(SECTION)
-        nxt = [i for i in (text.find("\n### ", start + 1), text.find("\n## ", start + 1)) if i != -1]
+        nxt = [i for i in (text.find("\n### ", start + 1), text.find("\n## ", start + 1), text.find("\n<!--", start + 1))
+               if i != -1]
         end = min(nxt) + 1 if nxt else len(text)
         text = text[:start] + block + "\n" + text[end:]
     else:
