@@ -13,8 +13,9 @@ field bilinearly (periodic). The horizon slope is
 
 clamped at 0: the tangent plane is the lowest horizon (a light below it is dark by Lambert anyway).
 
-The search is exact but skips work: a band of farther samples is searched only where the band's
-maximum height could beat the slope found so far (see `horizon_map`).
+The search is exact. With D = 4 or 8 it is dense and gather-free: each step k is one periodic
+whole-field shift, fused by XLA. Other D skip work: a band of farther samples is searched only where
+the band's maximum height could beat the slope found so far (see `horizon_map`).
 """
 
 from __future__ import annotations
@@ -115,7 +116,9 @@ def horizon_map(height: Float[ArrayLike, "H W"], *, directions: int = 8, texel_s
     """Horizon slopes (tan of the horizon elevation) of a periodic heightfield in D directions.
 
     `height` is in the same length unit as `texel_size` (scale ripple heights before calling).
-    Exact (equal to the full search of every path) but fast: all texels search the first steps
+    Exact (equal to the full search of every path). D = 4 or 8 (all steps on the lattice): every
+    step k = 1 .. S - 1 is a whole-field periodic shift, searched densely (no gathers; `near` and
+    `capacity` are not used). Other D: all texels search the first steps
     k <= `near` (rounded up to 2^j - 1) with whole-field shifts. Farther steps are split into
     dyadic bands [2^j, 2^(j+1)); a band can only matter to a (texel, direction) lane when the
     band's maximum height M_j (a sparse-table range maximum along the path) gives
@@ -171,14 +174,9 @@ def horizon_map(height: Float[ArrayLike, "H W"], *, directions: int = 8, texel_s
             h0 = h_flat[y * cols + x]
             lane_len = length_flat[idx]
             ex, ey = ex_all[d], ey_all[d]
-            if lattice:
-                iex, iey = ex.astype(jnp.int32), ey.astype(jnp.int32)
 
             def inner(k, b):
-                if lattice:
-                    sample = h_flat[jnp.mod(y + k * iey, rows) * cols + jnp.mod(x + k * iex, cols)]
-                else:
-                    sample = _gather(height, y, x, k, ex, ey)
+                sample = _gather(height, y, x, k, ex, ey)
                 return jnp.maximum(b, (sample - h0) / (k.astype(height.dtype) * lane_len))
 
             b = jax.lax.fori_loop(k_lo, k_hi + 1, inner, best_flat[idx])
