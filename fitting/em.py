@@ -136,8 +136,8 @@ class EMInfo(eqx.Module):
 def _normalize3(x, y, z):
     sq = x * x + y * y + z * z
     positive = sq > 1e-24
-    n = jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 1.0)
-    return x / n, y / n, z / n
+    inv = jnp.where(positive, jax.lax.rsqrt(jnp.where(positive, sq, 1.0)), 1.0)  # one reciprocal, 3 products
+    return x * inv, y * inv, z * inv
 
 
 def _tangent_frame3(nx, ny, nz):
@@ -148,6 +148,24 @@ def _tangent_frame3(nx, ny, nz):
     tx, ty, tz = (jnp.where(degenerate, a, b) for a, b in zip((-ny * nx, 1 - ny * ny, -ny * nz), (tx, ty, tz)))
     tx, ty, tz = _normalize3(tx, ty, tz)
     return (tx, ty, tz), (ny * tz - nz * ty, nz * tx - nx * tz, nx * ty - ny * tx), (nx, ny, nz)
+
+
+_UNROLL = 16  # axes up to this length are summed as written-out elementwise adds
+
+
+def _sum(a, axis):
+    """`jnp.sum` over `axis` (int or tuple); short axes (e.g. the 9 nodes of a group, a MIDDLE
+    axis) are added slice by slice, which XLA CPU fuses into one vectorized elementwise loop over
+    the texel axis (its reduction of a short middle axis is several times slower). Used where
+    measured faster; the leading-axis sums stay `jnp.sum`."""
+    axes = sorted(ax % a.ndim for ax in ((axis,) if isinstance(axis, int) else axis))
+    for ax in reversed(axes):
+        if a.shape[ax] <= _UNROLL:
+            parts = [jax.lax.index_in_dim(a, i, ax, keepdims=False) for i in range(a.shape[ax])]
+            a = functools.reduce(jnp.add, parts)
+        else:
+            a = jnp.sum(a, axis=ax)
+    return a
 
 
 def _logsumexp0(a):
@@ -163,11 +181,15 @@ def _logsumexp0(a):
 def _e_step(x0, x1, qn, params, virtual):
     """Responsibilities `G K N` of each group and log sum_k per group `G N`."""
     pi, m0, m1, v0, v1 = params
-    d0 = x0[:, :, None, :] - m0[None, None]
-    d1 = x1[:, :, None, :] - m1[None, None]
     log_norm = -0.5 * (jnp.log(2 * jnp.pi * v0) + jnp.log(2 * jnp.pi * v1))
-    lg = log_norm[None, None] - 0.5 * (d0 * d0 / v0[None, None] + d1 * d1 / v1[None, None])      # G Q K N
-    ell = virtual * jnp.sum(qn[:, :, None, :] * lg, axis=1) + jnp.log(jnp.maximum(pi, _TINY))[None]  # G K N
+    h0, h1 = 0.5 / v0, 0.5 / v1  # reciprocals on K N: no division per node
+
+    def term(j):  # node j of every group: G K N (the sum over the short node axis written out)
+        d0 = x0[:, j, None, :] - m0[None]
+        d1 = x1[:, j, None, :] - m1[None]
+        return qn[:, j, None, :] * (log_norm[None] - (d0 * d0 * h0[None] + d1 * d1 * h1[None]))
+
+    ell = virtual * sum(term(j) for j in range(x0.shape[1])) + jnp.log(jnp.maximum(pi, _TINY))[None]  # G K N
     lse = _logsumexp0(jnp.moveaxis(ell, 1, 0))                                                    # G N
     return jnp.exp(ell - lse[:, None, :]), lse
 
@@ -194,7 +216,7 @@ def _em_core(x0, x1, w, params, *, iterations, tol, var_floor, virtual, run):
     count as converged).
     Returns (parameters, log-likelihood N, iterations N, converged N, responsibilities G K N)."""
     w = w / jnp.maximum(jnp.sum(w, axis=(0, 1)), _TINY)[None, None]
-    mass = jnp.sum(w, axis=1)                                                                     # G N
+    mass = _sum(w, axis=1)                                                                     # G N
     qn = w / jnp.maximum(mass, _TINY)[:, None, :]
 
     def loglik(lse):
@@ -318,8 +340,8 @@ def _lobe_nodes(normal, sigma_x, sigma_y, order):
     sy = jnp.maximum(sigma_y, SIGMA_FLOOR)[:, None, :]
     aa, bb = a[None, :, None], b[None, :, None]
     h = _normalize3(*(aa * sx * tc[:, None, :] + bb * sy * bc[:, None, :] + nc[:, None, :] for tc, bc, nc in zip(t, bt, n)))
-    hz = jnp.maximum(h[2], _HZ_FLOOR)
-    return h, h[0] / hz, h[1] / hz, q
+    inv = 1 / jnp.maximum(h[2], _HZ_FLOOR)
+    return h, h[0] * inv, h[1] * inv, q
 
 
 def lobe_slope_nodes(lobe: Lobe, *, order: int = DEFAULT_ORDER) -> tuple[Float[Array, "Q 3"], Float[Array, "Q 2"], Float[Array, " Q"]]:
@@ -357,8 +379,8 @@ def _component_lobes(h, w, e, resp, m0, m1, mass):
     def frame_slopes(normal):
         t, b, n = _tangent_frame3(*normal)
         dot = lambda u: sum(hc * uc[None, None, :] for hc, uc in zip(h, u))  # noqa: E731
-        hn = jnp.maximum(dot(n), _HZ_FLOOR)
-        return t, b, n, dot(t) / hn, dot(b) / hn
+        inv = 1 / jnp.maximum(dot(n), _HZ_FLOOR)
+        return t, b, n, dot(t) * inv, dot(b) * inv
 
     def recentre(_, normal):  # move the normal until the nodes' mean slope in its own frame is 0
         t, b, n, p, q = frame_slopes(normal)
@@ -524,8 +546,10 @@ def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: in
 
     Texels are processed in fixed-size chunks (buckets of 16, 256, 4096, ... texels up to `chunk`;
     the last chunk padded by repeating a texel) so that a whole pyramid reuses a few compiled
-    kernels; the Python loop runs over chunks, never over texels. Splitting into chunks and
-    concatenating happen on the host (numpy), the EM itself in `em_texels`.
+    kernels (two with the default `chunk`=256); the Python loop runs over chunks, never over
+    texels, and dispatches them asynchronously. Small chunks keep the EM loop short: it runs until
+    the slowest texel OF THE CHUNK has converged. Splitting into chunks and concatenating happen on
+    the host (numpy), the EM itself in `em_texels`.
     """
     children = jax.tree.map(np.asarray, _gather_jit(level))
     hh, ww = children.weight.shape[:2]
