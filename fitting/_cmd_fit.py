@@ -19,8 +19,8 @@ def configure(parser):
     parser.add_argument("capture_dir", metavar="CAPTURE_DIR", help="capture directory (capture.json + images)")
     parser.add_argument("--out", required=True, metavar="BTF_DIR",
                         help="output BTF directory (rerun on the same one to resume an interrupted fit)")
-    parser.add_argument("--solver", choices=("optimistix", "jaxopt"), default="optimistix",
-                        help="Levenberg-Marquardt backend (default optimistix)")
+    parser.add_argument("--solver", choices=("optimistix", "jaxopt", "native"), default="optimistix",
+                        help="Levenberg-Marquardt backend (default optimistix; native = fitting.lm's own, faster loop)")
     parser.add_argument("--chunk", type=_positive_int, default=4096,
                         help="texels per chunk: bounds memory, one checkpoint each (default 4096)")
     parser.add_argument("--max-steps", type=_positive_int, default=None,

@@ -31,7 +31,7 @@ import numpy as np
 
 from jaxrender.io import atomic_path, write_btf, write_btf_previews
 
-from .lm import DEFAULT_MAX_STEPS, SOLVERS, TexelFit, default_tolerances, fit_texels
+from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, SOLVERS, TexelFit, default_tolerances, fit_texels
 
 __all__ = ["fit_capture", "fit_observations", "fit_maps", "level0_channels", "DEFAULT_CHUNK", "TILE"]
 
@@ -128,7 +128,7 @@ def _load_chunk(path: Path, count: int) -> dict[str, np.ndarray] | None:
     return out
 
 
-def fit_maps(obs, *, solver: str = "optimistix", chunk: int = DEFAULT_CHUNK, max_steps: int = DEFAULT_MAX_STEPS,
+def fit_maps(obs, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK, max_steps: int = DEFAULT_MAX_STEPS,
              model: str = "reciprocal", partial_dir: str | os.PathLike | None = None,
              progress: bool | None = None, on_chunk: Callable[[int], object] | None = None) -> dict[str, np.ndarray]:
     """Fit every texel of `Observations`; returns `H W ...` numpy maps of the `TexelFit` fields.
@@ -199,7 +199,7 @@ def level0_channels(maps: dict[str, np.ndarray], obs) -> dict[str, np.ndarray]:
     return {k: np.asarray(v, np.float32) for k, v in c.items()}
 
 
-def fit_observations(obs, btf_dir: str | os.PathLike, *, solver: str = "optimistix", chunk: int = DEFAULT_CHUNK,
+def fit_observations(obs, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK,
                      max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal", pyramid: bool = True,
                      progress: bool | None = None, meta: dict | None = None) -> Path:
     """Fit `Observations` into the BTF directory `btf_dir` (checkpointed and resumable)."""
@@ -228,7 +228,7 @@ def fit_observations(obs, btf_dir: str | os.PathLike, *, solver: str = "optimist
     return btf_dir
 
 
-def fit_capture(capture_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, solver: str = "optimistix",
+def fit_capture(capture_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_SOLVER,
                 chunk: int = DEFAULT_CHUNK, max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal",
                 pyramid: bool = True, progress: bool | None = None) -> Path:
     """Capture directory -> BTF directory (see the module docstring). Raises `InputError`

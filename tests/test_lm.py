@@ -94,6 +94,12 @@ def fit_jaxopt(data):
     return fit_texels(ratio, weight, LIGHTS, VIEW, solver="jaxopt")
 
 
+@pytest.fixture(scope="module")
+def fit_native(data):
+    _, ratio, weight = data
+    return fit_texels(ratio, weight, LIGHTS, VIEW, solver="native")
+
+
 def _angle_deg(a, b):
     return np.degrees(np.arccos(np.clip(np.sum(np.asarray(a) * np.asarray(b), -1), -1, 1)))
 
@@ -198,8 +204,9 @@ def test_same_cost_as_scipy(data, fit_optx):
         assert abs(c_ours - c_scipy) <= COST_REL_TOL * c_scipy, (i, c_ours, c_scipy)
 
 
-def test_jaxopt_gives_the_same_fits(data, fit_optx, fit_jaxopt):
-    a, b = fit_optx, fit_jaxopt
+@pytest.mark.parametrize("other", ["fit_jaxopt", "fit_native"])
+def test_other_solvers_give_the_same_fits(data, fit_optx, other, request):
+    a, b = fit_optx, request.getfixturevalue(other)
     assert bool(jnp.all(b.converged[:N_REGULAR]))
     np.testing.assert_allclose(b.cost[:N_REGULAR], a.cost[:N_REGULAR], rtol=COST_REL_TOL)
     assert _angle_deg(a.normal[:N_REGULAR], b.normal[:N_REGULAR]).max() < 0.05
@@ -207,9 +214,9 @@ def test_jaxopt_gives_the_same_fits(data, fit_optx, fit_jaxopt):
     np.testing.assert_allclose(b.rho_s[:N_REGULAR], a.rho_s[:N_REGULAR], rtol=5e-3)
 
 
-def test_degenerate_texels(data, fit_optx, fit_jaxopt):
+def test_degenerate_texels(data, fit_optx, fit_jaxopt, fit_native):
     _, ratio, weight = data
-    for f in (fit_optx, fit_jaxopt):
+    for f in (fit_optx, fit_jaxopt, fit_native):
         for leaf in jax.tree_util.tree_leaves(f):
             assert bool(jnp.all(jnp.isfinite(leaf))), "NaN/Inf in the fit"
         # all saturated: no valid observation, nothing was fitted -> not converged, n_valid 0
@@ -220,23 +227,23 @@ def test_degenerate_texels(data, fit_optx, fit_jaxopt):
         # the normals stay in the upper hemisphere and slopes above the floor everywhere
         assert np.all(np.asarray(f.normal[:, 2]) > 0)
         assert np.all(np.asarray(f.sigma_x) >= SIGMA_FLOOR)
-    # the converged flag is the optimistix result code: where it says converged the solver stopped
-    # before max_steps at a stationary point (gradient of the cost ~ 0 w.r.t. the solver's
-    # parameters, by central differences).
-    f = fit_optx
-    for i in range(ratio.shape[0]):
+    # the converged flag is the optimistix result code (native: its own termination test): where it
+    # says converged the solver stopped before max_steps at a stationary point (gradient of the cost
+    # ~ 0 w.r.t. the solver's parameters, by central differences).
+    @jax.jit
+    def cost(th, r, w):
+        n, sx, sy = theta_to_geometry(th)
+        rd, rs = project_rho(basis(n, sx, sy, LIGHTS, VIEW), r.T, w / jnp.mean(w))
+        return texel_cost(rd, rs, n, sx, sy, r, w, LIGHTS, VIEW)
+
+    for f, i in ((f, i) for f in (fit_optx, fit_native) for i in range(ratio.shape[0])):
         if not bool(f.converged[i]):
             continue
         assert int(f.num_steps[i]) < 40
         theta = geometry_to_theta(f.normal[i], f.sigma_x[i], f.sigma_y[i])
-
-        def cost(th, i=i):
-            n, sx, sy = theta_to_geometry(th)
-            rd, rs = project_rho(basis(n, sx, sy, LIGHTS, VIEW), ratio[i].T, weight[i] / jnp.mean(weight[i]))
-            return texel_cost(rd, rs, n, sx, sy, ratio[i], weight[i], LIGHTS, VIEW)
-
         h = 1e-6
-        grad = np.array([(cost(theta + h * e) - cost(theta - h * e)) / (2 * h) for e in np.eye(4)])
+        grad = np.array([(cost(theta + h * e, ratio[i], weight[i]) - cost(theta - h * e, ratio[i], weight[i])) / (2 * h)
+                         for e in np.eye(4)])
         scale = max(float(f.cost[i]), 1e-12)
         # gradient small relative to the cost (a relative change of the cost per unit parameter)
         assert np.abs(grad).max() < 1e-3 * scale + 1e-9, (i, grad, scale)
