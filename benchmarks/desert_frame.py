@@ -8,28 +8,16 @@ The peer in the same run is the same frame without culling and LOD (every quad a
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 from pathlib import Path
 
 import jax
 
 from jaxrender.io import write_png
+from _timing import timed  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 from jaxrender.scenes import desert as D
 
 FIG = Path(__file__).parent / "figures"
-
-
-def timed(fn, repeats):
-    start = time.perf_counter()
-    jax.block_until_ready(fn())
-    compile_s = time.perf_counter() - start
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return compile_s, statistics.median(times)
 
 
 def main() -> None:

@@ -12,30 +12,17 @@ cast to the screen; the full frame (shading + ray cast + sky) is timed too.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from _timing import timed  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 from jaxrender.scenes import desert as D
 from jaxrender.terrain import plan_quads, quad_capacities, shade_quads
 
 FIG = Path(__file__).parent / "figures"
-
-
-def timed(fn, repeats):
-    start = time.perf_counter()
-    jax.block_until_ready(fn())
-    compile_s = time.perf_counter() - start
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return compile_s, statistics.median(times)
 
 
 def main() -> None:

@@ -18,22 +18,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from _timing import timed  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 from jaxrender.scenes import desert as D
 from jaxrender.shadows import horizon_directions, horizon_map
 
 FIG = Path(__file__).parent / "figures"
-
-
-def timed(fn, repeats):
-    start = time.perf_counter()
-    jax.block_until_ready(fn())
-    compile_s = time.perf_counter() - start
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return compile_s, statistics.median(times)
 
 
 def horizon_numpy(h: np.ndarray, directions: int = 8) -> np.ndarray:
