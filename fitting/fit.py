@@ -36,7 +36,7 @@ from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, SOLVERS, TexelFit, default_to
 __all__ = ["fit_capture", "fit_observations", "fit_maps", "level0_channels", "DEFAULT_CHUNK", "TILE"]
 
 DEFAULT_CHUNK = 4096
-TILE = 512  # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done
+TILE = 32  # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
 PARTIAL = ".partial"
 _FIELDS = ("rho_d", "rho_s", "normal", "sigma_x", "sigma_y", "residual", "cost", "converged", "num_steps", "n_valid")
 
@@ -54,25 +54,25 @@ def _layout(chunk: int, n_devices: int) -> tuple[int, int]:
 
 @functools.lru_cache(maxsize=None)
 def _sharded_fit(n_devices: int, tile: int, model: str, solver: str, max_steps: int):
-    """`fit_texels` over `D x P` texels, axis 0 sharded over the first `n_devices` local devices.
+    """`fit_texels` over `S x (D tile)` texels: `lax.map` over the S steps, each step one vmapped
+    Levenberg-Marquardt solve of `D x tile` texels whose axis is sharded over the first `n_devices`
+    local devices (`NamedSharding` on a 1-D mesh), so every device fits `tile` texels per step.
 
-    A `NamedSharding` over a 1-D mesh: device d fits row d, tile by tile (`lax.map` over tiles of
-    `tile` texels, each one vmapped Levenberg-Marquardt solve). (`jax.shard_map` is not used:
-    optimistix/lineax structure checks reject its varying-axis types.)
+    (Not `vmap` over a device axis: that batches the solver's while loop once more and runs 5-10x
+    slower on CPU; not `jax.shard_map`: lineax's operator structure checks reject its types.)
     """
     devices = np.asarray(jax.local_devices()[:n_devices])
     mesh = jax.sharding.Mesh(devices, ("texels",))
-    shard = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("texels"))
+    spec = jax.sharding.PartitionSpec(None, "texels")
+    shard = jax.sharding.NamedSharding(mesh, spec)
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
 
-    def per_device(ratio, weight, light_dirs, view_dir):
-        tiles = (ratio.reshape((-1, tile) + ratio.shape[1:]), weight.reshape((-1, tile) + weight.shape[1:]))
-        out = jax.lax.map(lambda rw: fit_texels(rw[0], rw[1], light_dirs, view_dir, model=model, solver=solver,
-                                                max_steps=max_steps), tiles)
-        return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
+    def fit_step(rw, light_dirs, view_dir):
+        ratio, weight = jax.lax.with_sharding_constraint(rw, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("texels")))
+        return fit_texels(ratio, weight, light_dirs, view_dir, model=model, solver=solver, max_steps=max_steps)
 
     def fn(ratio, weight, light_dirs, view_dir):
-        return jax.vmap(per_device, in_axes=(0, 0, None, None))(ratio, weight, light_dirs, view_dir)
+        return jax.lax.map(lambda rw: fit_step(rw, light_dirs, view_dir), (ratio, weight))
 
     return jax.jit(fn, in_shardings=(shard, shard, replicated, replicated), out_shardings=shard), shard
 
@@ -81,8 +81,9 @@ def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_
     """Fit `n_devices * per_device` texels (already padded); returns flat numpy fields."""
     n_dev = jax.local_device_count()
     fn, shard = _sharded_fit(n_dev, tile, model, solver, max_steps)
-    ratio = jax.device_put(ratio.reshape((n_dev, -1) + ratio.shape[1:]), shard)
-    weight = jax.device_put(weight.reshape((n_dev, -1) + weight.shape[1:]), shard)
+    steps = (-1, n_dev * tile)
+    ratio = jax.device_put(ratio.reshape(steps + ratio.shape[1:]), shard)
+    weight = jax.device_put(weight.reshape(steps + weight.shape[1:]), shard)
     out: TexelFit = fn(ratio, weight, jnp.asarray(light_dirs), jnp.asarray(view_dir))
     return {name: np.asarray(getattr(out, name)).reshape((-1,) + getattr(out, name).shape[2:]) for name in _FIELDS}
 

@@ -7,26 +7,30 @@ one view direction. The model is `jaxrender.brdf.reflectance` (the one BRDF of t
     R_lc = rho_d_c a_l(N) + rho_s_c b_l(N, sigma_x, sigma_y)
 
 with `a` the diffuse and `b` the specular column (`basis`). rho_d and rho_s enter linearly, so
-they are eliminated (variable projection): for a given nonlinear parameter vector the best
-non-negative (rho_d_c, rho_s_c) per channel is a 2-variable non-negative least-squares problem,
-solved in closed form with a small ridge (the specular column vanishes as sigma -> 0). The
-nonlinear solver then sees only
+they are eliminated (variable projection, `fitting._varpro`): for a given nonlinear parameter
+vector the best non-negative (rho_d_c, rho_s_c) per channel is a 2-variable non-negative
+least-squares problem, solved in closed form with a small ridge (the specular column vanishes as
+sigma -> 0, and a lobe seen by one light would otherwise take unbounded rho_s). The nonlinear
+solver then sees only
 
     theta = (p, q, s_x, s_y):  N = normalize(p, q, 1)  (always in the upper hemisphere),
                                sigma = SIGMA_FLOOR + exp(clip(s, S_MIN, S_MAX))
 
-shared by the three channels: optimistix `LevenbergMarquardt` (default), jaxopt's
-(`solver="jaxopt"`, imported only when asked for) or a hand-written vmappable Levenberg-Marquardt
-loop (`solver="native"`: one forward-mode pass per step, 4 x 4 normal equations by an unrolled
-Cholesky; several times faster, but not the default: on ill-determined texels that exhaust
-max_steps its float32 result is more sensitive to rounding than optimistix's). The objective of both, and of every
-comparison in the tests, is `cost = 0.5 * sum_l w_l sum_c (R_lc - model_lc)^2` with the weights
-scaled to mean 1 over the valid observations.
+shared by the three channels, through a compressed residual (`_compress`): five numbers with the
+projected fit's value and Gauss-Newton model, computed in one pass over the lights (cost,
+gradient and the variable-projection Gauss-Newton matrix as sums over lights). The solver is
+optimistix's `LevenbergMarquardt` (default; its trust region told the cost's rounding level),
+jaxopt's (`solver="jaxopt"`, imported only when asked for) or a hand-written vmappable loop
+(`solver="native"`, Nielsen's damping on the same quantities). The objective all of them
+minimize is `cost + 0.5 lam |rho|^2` with lam ~1e-7 of the normal equations' diagonal
+(`fitting._varpro.ridge_of`); the cost reported, and compared in the tests (scipy included), is
+`cost = 0.5 * sum_l w_l sum_c (R_lc - model_lc)^2` with the weights scaled to mean 1 over the
+valid observations.
 
 Starting values: a photometric-stereo normal (weighted least squares of the luminance on the
 light directions, re-solved twice without the specular outliers and attached shadows) and the
 half vector of the brightest observation as two normal candidates, times a 3 x 3 grid of
-(sigma_x, sigma_y); the candidate with the lowest projected cost starts the solver.
+(sigma_x, sigma_y); the candidate with the lowest projected objective starts the solver.
 """
 
 from __future__ import annotations
@@ -38,8 +42,12 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxrender.brdf import MODELS, SIGMA_FLOOR, BTFTexel, reflectance
+from jaxrender.brdf import MODELS, BTFTexel, reflectance, tangent_frame
 from jaxrender._math import normalize
+
+from ._varpro import (RIDGE, S_MAX, S_MIN, Lights, columns, columns_from_frame, gauss_newton, geometry_to_theta,
+                      lights_of, projected_cost_offset, theta_to_geometry)
+from ._varpro import project_rho as _project_rho
 
 __all__ = ["TexelFit", "SOLVERS", "fit_texels", "fit_texel", "initial_theta", "theta_to_geometry",
            "geometry_to_theta", "basis", "project_rho", "texel_cost", "texel_residuals",
@@ -47,11 +55,9 @@ __all__ = ["TexelFit", "SOLVERS", "fit_texels", "fit_texel", "initial_theta", "t
 
 SOLVERS = ("native", "optimistix", "jaxopt")
 DEFAULT_SOLVER = "optimistix"
-S_MIN, S_MAX = -12.0, 3.0   # log(sigma - floor): sigma from SIGMA_FLOOR + 6e-6 to ~20 (a flat lobe)
 SIGMA_STARTS = (0.03, 0.1, 0.3)
-RIDGE = 1e-7                # relative ridge of the 2 x 2 normal equations of (rho_d, rho_s)
 DEFAULT_MAX_STEPS = 40
-_LINEAR = "normal"
+_LIGHT_ALIGN = 16   # lights per 64 bytes of float32
 
 
 class TexelFit(eqx.Module):
@@ -77,75 +83,29 @@ def default_tolerances(dtype) -> tuple[float, float]:
     """(rtol, atol) of the solver's termination test for the observations' dtype."""
     if jnp.dtype(dtype) == jnp.float64:
         return 1e-8, 1e-10
-    return 1e-4, 1e-6  # float32: the cost itself is only known to ~1e-7 relative
+    return 1e-4, 1e-4  # float32: the cost itself is only known to ~1e-7 relative
 
 
 # ---------------------------------------------------------------------------------------------
-# parameterization
-
-def theta_to_geometry(theta: Float[Array, "4"]) -> tuple[Float[Array, "3"], Float[Array, ""], Float[Array, ""]]:
-    """(normal, sigma_x, sigma_y) of the unconstrained parameters (p, q, s_x, s_y)."""
-    one = jnp.ones((), theta.dtype)
-    normal = normalize(jnp.stack([theta[0], theta[1], one]))
-    sigma = SIGMA_FLOOR + jnp.exp(jnp.clip(theta[2:], S_MIN, S_MAX))
-    return normal, sigma[0], sigma[1]
-
-
-def geometry_to_theta(normal: Float[ArrayLike, "3"], sigma_x: ArrayLike, sigma_y: ArrayLike) -> Float[Array, "4"]:
-    """Inverse of `theta_to_geometry` (normals are clamped to 1e-3 above the horizon)."""
-    n = jnp.asarray(normal)
-    nz = jnp.maximum(n[2], 1e-3)
-    sig = jnp.stack([jnp.asarray(sigma_x, n.dtype), jnp.asarray(sigma_y, n.dtype)])
-    s = jnp.log(jnp.maximum(sig - SIGMA_FLOOR, 1e-30))
-    return jnp.concatenate([jnp.stack([n[0] / nz, n[1] / nz]), jnp.clip(s, S_MIN, S_MAX)])
-
-
-# ---------------------------------------------------------------------------------------------
-# the linear part
+# the model's columns, for explicit geometry
 
 def basis(normal: Float[Array, "3"], sigma_x: Float[Array, ""], sigma_y: Float[Array, ""],
           light_dirs: Float[Array, "L 3"], view_dir: Float[Array, "3"], *, model: str = "reciprocal") -> Float[Array, "L 2"]:
-    """Columns (a, b) of the model: R = rho_d a + rho_s b, per channel.
+    """Columns (a, b) of the model: R = rho_d a + rho_s b, per channel (`normal` a unit vector).
 
-    Evaluated with `jaxrender.brdf.reflectance` itself on a two-"channel" texel with
-    rho_d = (1, 0) and rho_s = (0, 1), so the fit uses exactly the renderer's model.
+    The same terms as `jaxrender.brdf.reflectance` of a one-lobe texel (tested equal), evaluated
+    on the light directions as structure of arrays.
     """
-    dt = light_dirs.dtype
-    texel = BTFTexel.single(jnp.array([1.0, 0.0], dt), jnp.array([0.0, 1.0], dt), normal, sigma_x, sigma_y)
-    return jax.vmap(lambda wi: reflectance(texel, wi, view_dir, model=model))(light_dirs)
+    t, b, n = tangent_frame(jnp.asarray(normal))
+    lights = lights_of(jnp.asarray(light_dirs), jnp.asarray(view_dir))
+    return jnp.stack(columns_from_frame((n, t, b, sigma_x, sigma_y), lights, model), axis=-1)
 
 
 def project_rho(ab: Float[Array, "L 2"], ratio_cl: Float[Array, "3 L"], w: Float[Array, "L"], *,
                 ridge: float = RIDGE) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
-    """Per channel: argmin_{rho_d, rho_s >= 0} sum_l w_l (R_l - rho_d a_l - rho_s b_l)^2 + lam |rho|^2.
-
-    The closed form of a 2-variable NNLS: the unconstrained solution when it is feasible, else
-    the better of the two clamped one-variable solutions. lam = ridge * (|a|^2 + |b|^2) + tiny.
-    The observations are channel-major (`3 L`): XLA on CPU is much faster without a minor axis of 3.
-    """
-    a, b = ab[:, 0], ab[:, 1]
-    wa, wb = w * a, w * b
-    saa, sab, sbb = jnp.sum(wa * a), jnp.sum(wa * b), jnp.sum(wb * b)
-    tiny = jnp.asarray(jnp.finfo(ab.dtype).tiny ** 0.5, ab.dtype)
-    lam = ridge * (saa + sbb) + tiny
-    gaa, gbb = saa + lam, sbb + lam
-    har = jnp.sum(ratio_cl * wa[None, :], axis=-1)  # (3,); elementwise: batched matvecs are slow on CPU
-    hbr = jnp.sum(ratio_cl * wb[None, :], axis=-1)
-    det = gaa * gbb - sab * sab
-    det = jnp.maximum(det, lam * lam)  # Cauchy-Schwarz: det >= lam^2 in exact arithmetic
-    xd = (gbb * har - sab * hbr) / det
-    xs = (gaa * hbr - sab * har) / det
-    both = (xd >= 0) & (xs >= 0)
-    d_only = jnp.maximum(har / gaa, 0.0)
-    s_only = jnp.maximum(hbr / gbb, 0.0)
-    # q(x) = x^T G x - 2 h^T x for the two one-variable candidates
-    q_d = gaa * d_only * d_only - 2 * har * d_only
-    q_s = gbb * s_only * s_only - 2 * hbr * s_only
-    pick_d = q_d <= q_s
-    zero = jnp.zeros_like(xd)
-    rho_d = jnp.where(both, xd, jnp.where(pick_d, d_only, zero))
-    rho_s = jnp.where(both, xs, jnp.where(pick_d, zero, s_only))
-    return rho_d, rho_s
+    """Per channel: argmin_{rho_d, rho_s >= 0} sum_l w_l (R_l - rho_d a_l - rho_s b_l)^2 + lam |rho|^2
+    (closed form, `fitting._varpro.nnls2`); the observations are channel-major (`3 L`)."""
+    return _project_rho(ab[:, 0], ab[:, 1], ratio_cl, w, ridge=ridge)
 
 
 def _normalized_weights(weight: Float[Array, "L"]) -> Float[Array, "L"]:
@@ -174,44 +134,88 @@ def texel_cost(rho_d, rho_s, normal, sigma_x, sigma_y, ratio, weight, light_dirs
     return 0.5 * jnp.sum(r * r)
 
 
-def _projected(theta, ratio_cl, w, light_dirs, view_dir, model):
-    """(model `3 L`, rho_d, rho_s) at theta with the projected (optimal) rho."""
-    normal, sx, sy = theta_to_geometry(theta)
-    ab = basis(normal, sx, sy, light_dirs, view_dir, model=model)
-    rho_d, rho_s = project_rho(ab, ratio_cl, w)
-    pred = rho_d[:, None] * ab[None, :, 0] + rho_s[:, None] * ab[None, :, 1]
-    return pred, rho_d, rho_s
+def _cholesky(a):
+    """Lower Cholesky factor of a small symmetric positive definite matrix, unrolled: scalar
+    operations only, which vmapped over texels are elementwise array ops (much faster on XLA:CPU
+    than batched LAPACK calls on tiny matrices). Pivots are floored at `tiny`."""
+    n = a.shape[0]
+    low = [[jnp.zeros((), a.dtype)] * n for _ in range(n)]
+    tiny = jnp.finfo(a.dtype).tiny
+    for i in range(n):
+        for j in range(i + 1):
+            s = a[i, j]
+            for k in range(j):
+                s = s - low[i][k] * low[j][k]
+            low[i][j] = jnp.sqrt(jnp.maximum(s, tiny)) if i == j else s / low[j][j]
+    return jnp.stack([jnp.stack(row) for row in low])
 
 
-def _raw_residual(theta, args, model):
-    ratio_cl, w, light_dirs, view_dir = args
-    pred, _, _ = _projected(theta, ratio_cl, w, light_dirs, view_dir, model)
-    return (jnp.sqrt(w)[None, :] * (ratio_cl - pred)).reshape(-1)
+def _forward_sub(low, b):
+    n = low.shape[0]
+    y = []
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s = s - low[i, k] * y[k]
+        y.append(s / low[i, i])
+    return jnp.stack(y)
+
+
+def _chol_solve(a, b):
+    """Solve a x = b for a small symmetric positive definite `a` (unrolled, see `_cholesky`)."""
+    low = _cholesky(a)
+    return _forward_sub(low.T[::-1, ::-1], _forward_sub(low, b)[::-1])[::-1]
+
+
+def _compress(theta, args, model):
+    """(r, J): a 5-residual problem with the same value and Gauss-Newton model as the projected fit.
+
+    With objective c, gradient g and Gauss-Newton matrix M of the projected fit (`gauss_newton`, one
+    pass over the lights) and M = L L^T: J = L^T and r = (L^-1 g, sqrt(2c - |L^-1 g|^2)) give
+    0.5 |r|^2 = c, J^T r = g and J^T J = M, so 0.5 |r + J d|^2 is the projected fit's own
+    Gauss-Newton model in d (J's fifth row is 0). (This is the QR compression of least squares: the 3L residuals and
+    their `3L x 4` Jacobian are replaced by 5 numbers and a 4 x 4 triangle.) M is lifted by 1e-7 of
+    its mean diagonal to stay definite where a parameter has no effect (a black texel).
+    """
+    ratio_cl, w, lights = args
+    gn = gauss_newton(theta, ratio_cl, w, lights, model)
+    m = gn.matrix
+    dt = m.dtype
+    lift = 1e-7 * jnp.trace(m) / 4 + jnp.finfo(dt).tiny ** 0.5
+    low = _cholesky(m + lift * jnp.eye(4, dtype=dt))
+    r_lin = _forward_sub(low, gn.grad)
+    two_c = 2 * gn.objective
+    lin2 = jnp.sum(r_lin * r_lin)
+    # |L^-1 g|^2 <= 2c in exact arithmetic (a projection of the residual); keep 0.5 |r|^2 = c under rounding
+    r_lin = r_lin * jnp.where(lin2 > two_c, jnp.sqrt(two_c / jnp.where(lin2 > 0, lin2, 1.0)), 1.0)
+    rest = jnp.sqrt(jnp.maximum(two_c - jnp.sum(r_lin * r_lin), 0.0))
+    r = jnp.concatenate([r_lin, rest[None]])
+    jac = jnp.concatenate([low.T, jnp.zeros((1, 4), dt)])
+    # Any orthogonal map of (r, J) keeps the model; this reflection spreads the large `rest` over
+    # all five components so that optimistix's per-component test of the change in r (relative
+    # to |r_i|) sees no component that is zero at the optimum (as L^-1 g is) and only rounding.
+    v = jnp.full((5,), -1 / 5**0.5, dt).at[4].add(1.0)   # e5 - u, u = (1, 1, 1, 1, 1) / sqrt(5)
+    reflect = jnp.eye(5, dtype=dt) - 2 * jnp.outer(v, v) / jnp.sum(v * v)
+    return reflect @ r, reflect @ jac
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
 def _residual(theta, args, model):
-    return _raw_residual(theta, args, model)
+    return _compress(theta, args, model)[0]
 
 
 @_residual.defjvp
 def _residual_jvp(model, primals, tangents):
-    """One forward-mode pass gives the whole `3L x 4` Jacobian; every tangent is then J @ t.
-
-    The solvers apply the linearization several times per step (materializing J for the damped
-    least-squares solve, predicted reduction of the trust region): with J explicit each of those is
-    a small matrix-vector product instead of another pass through the BRDF. The observations
-    (`args`) are data, not parameters: their tangents are ignored.
-    """
+    """The tangent J d of the compressed residual (`_compress`); the observations (`args`) are
+    data, not parameters: their tangents are ignored."""
     theta, args = primals
     d_theta, _ = tangents
-    r, lin = jax.linearize(lambda th: _raw_residual(th, args, model), theta)
-    jac = jax.vmap(lin, out_axes=1)(jnp.eye(theta.shape[0], dtype=theta.dtype))
+    r, jac = _compress(theta, args, model)
     return r, jac @ d_theta
 
 
 class _VarProResidual(eqx.Module):
-    """theta -> sqrt(w) (R - projected model), flattened: the nonlinear solver's residual."""
+    """theta -> the compressed residual of the projected fit (`_compress`): the solvers' residual."""
 
     model: str = eqx.field(static=True)
 
@@ -222,20 +226,20 @@ class _VarProResidual(eqx.Module):
 # ---------------------------------------------------------------------------------------------
 # starting values
 
-def _photometric_stereo(ratio_cl: Float[Array, "3 L"], w: Float[Array, "L"], light_dirs: Float[Array, "L 3"]) -> Float[Array, "3"]:
+def _photometric_stereo(ratio_cl: Float[Array, "3 L"], w: Float[Array, "L"], lights: Lights) -> Float[Array, "3"]:
     """Lambertian normal from the luminance, re-solved without specular outliers and shadows."""
     dt = ratio_cl.dtype
     y = (ratio_cl[0] + ratio_cl[1] + ratio_cl[2]) / 3
+    l = lights.l
     valid = w > 0
     use = valid
-    eye = jnp.eye(3, dtype=dt)
     g = jnp.zeros(3, dt)
     for _ in range(3):
         u = jnp.where(use, w, 0.0)
-        a = (light_dirs * u[:, None]).T @ light_dirs
-        a = a + (1e-6 * jnp.trace(a) + jnp.finfo(dt).tiny ** 0.5) * eye
-        g = jnp.linalg.solve(a, light_dirs.T @ (u * y))
-        pred = light_dirs @ g
+        a = jnp.stack([jnp.stack([jnp.sum(u * l[i] * l[j]) for j in range(3)]) for i in range(3)])
+        a = a + (1e-6 * jnp.trace(a) + jnp.finfo(dt).tiny ** 0.5) * jnp.eye(3, dtype=dt)
+        g = _chol_solve(a, jnp.stack([jnp.sum(l[i] * u * y) for i in range(3)]))
+        pred = l[0] * g[0] + l[1] * g[1] + l[2] * g[2]
         e = y - pred
         scale = jnp.sqrt(jnp.sum(u * e * e) / jnp.maximum(jnp.sum(u), 1e-30))
         keep = valid & (e <= 2.0 * scale + 1e-6) & (pred > 0)
@@ -248,40 +252,88 @@ def _photometric_stereo(ratio_cl: Float[Array, "3 L"], w: Float[Array, "L"], lig
 def initial_theta(ratio: Float[Array, "L 3"], weight: Float[Array, "L"], light_dirs: Float[Array, "L 3"],
                   view_dir: Float[Array, "3"], *, model: str = "reciprocal") -> Float[Array, "4"]:
     """The starting point of the solver (see the module docstring)."""
-    return _initial_theta(jnp.asarray(ratio).T, _normalized_weights(jnp.asarray(weight)), jnp.asarray(light_dirs),
-                          jnp.asarray(view_dir), model)
+    return _initial_theta(jnp.asarray(ratio).T, _normalized_weights(jnp.asarray(weight)),
+                          lights_of(jnp.asarray(light_dirs), jnp.asarray(view_dir)), model)
 
 
-def _initial_theta(ratio_cl, w, light_dirs, view_dir, model):
+def _initial_theta(ratio_cl, w, lights, model):
     dt = ratio_cl.dtype
-    n_ps = _photometric_stereo(ratio_cl, w, light_dirs)
+    n_ps = _photometric_stereo(ratio_cl, w, lights)
     y = jnp.where(w > 0, ratio_cl[0] + ratio_cl[1] + ratio_cl[2], -jnp.inf)
-    brightest = light_dirs[jnp.argmax(y)]
-    n_peak = normalize(brightest + view_dir)
+    brightest = jnp.argmax(y)
+    n_peak = normalize(jnp.stack([c[brightest] for c in lights.h]))  # the half vector of the brightest light
     n_peak = jnp.where(n_peak[2] > 0.05, n_peak, n_ps)
     sig = jnp.asarray(SIGMA_STARTS, dt)
     sx, sy = jnp.meshgrid(sig, sig, indexing="ij")
     sx, sy = sx.reshape(-1), sy.reshape(-1)
     normals = jnp.stack([n_ps, n_peak])
     cand = jax.vmap(lambda n: jax.vmap(lambda a, b: geometry_to_theta(n, a, b))(sx, sy))(normals).reshape(-1, 4)
-    fn = _VarProResidual(model)
-    costs = jax.vmap(lambda th: jnp.sum(fn(th, (ratio_cl, w, light_dirs, view_dir)) ** 2))(cand)
+    costs = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model))(cand)
     return cand[jnp.argmin(costs)]
 
 
 # ---------------------------------------------------------------------------------------------
 # the solve
 
+def _rounding_floor(dt, rtol: float) -> float:
+    """Relative change of the cost below which a step cannot be told from rounding."""
+    return max(rtol * rtol, 8 * float(jnp.finfo(dt).eps))
+
+
+@functools.cache
+def _optimistix_lm():
+    """optimistix's Levenberg-Marquardt (damped Newton descent in a classical trust region), its
+    trust region told the cost's rounding level.
+
+    At the optimum of a float32 fit the cost is known to ~1e-7 relative: a trial step whose
+    predicted and actual changes are both below that is rejected by the classical ratio test
+    (0 / tiny), the region shrinks and the solve runs to max_steps at the minimum, reporting
+    failure. Here such a step is accepted, so optimistix's own termination test (small change of
+    y and of the residuals) decides, as it does on every accepted step.
+    """
+    from collections.abc import Callable
+
+    import lineax as lx
+    import optimistix as optx
+
+    class RoundingAwareTrustRegion(optx.AbstractSearch):
+        floor: float
+        inner: optx.ClassicalTrustRegion
+
+        def init(self, y, f_info_struct):
+            return self.inner.init(y, f_info_struct)
+
+        def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
+            step_size, accept, result, new_state = self.inner.step(first_step, y, y_eval, f_info, f_eval_info, state)
+            f, f_eval = f_info.as_min(), f_eval_info.as_min()
+            predicted = self.inner.predict_reduction(y_eval - y, f_info)   # <= 0
+            noise = self.floor * jnp.abs(f)
+            at_floor = ~first_step & (-predicted <= noise) & (jnp.abs(f_eval - f) <= noise)
+            return step_size, accept | at_floor, result, new_state
+
+    class LevenbergMarquardt(optx.AbstractGaussNewton):
+        rtol: float
+        atol: float
+        norm: Callable
+        descent: optx.DampedNewtonDescent
+        search: RoundingAwareTrustRegion
+        verbose: Callable
+
+        def __init__(self, rtol, atol, floor):
+            self.rtol, self.atol, self.norm = rtol, atol, optx.max_norm
+            # normal equations of the compressed 5 x 4 problem (`_compress`) by Cholesky; lam > 0
+            # keeps them definite
+            self.descent = optx.DampedNewtonDescent(linear_solver=lx.Normal(lx.Cholesky()))
+            self.search = RoundingAwareTrustRegion(floor, optx.ClassicalTrustRegion())
+            self.verbose = lambda **kwargs: None
+
+    return LevenbergMarquardt
+
+
 def _solve_optimistix(fn, theta0, args, max_steps, rtol, atol):
     import optimistix as optx
 
-    import lineax as lx
-
-    # The damped step solves [J; sqrt(lam) I] d = [r; 0]: with 4 unknowns and J explicit (see
-    # `_residual_jvp`) the normal equations (J^T J + lam I, 4 x 4 Cholesky) compile and run faster
-    # than a QR of the (3L + 4) x 4 matrix (measured 1.5x per fit); lam > 0 keeps them definite.
-    linear = lx.QR() if _LINEAR == "qr" else lx.Normal(lx.Cholesky())
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=linear)
+    solver = _optimistix_lm()(rtol, atol, _rounding_floor(theta0.dtype, rtol))
     sol = optx.least_squares(fn, solver, theta0, args, max_steps=max_steps, throw=False)
     ok = sol.result == optx.RESULTS.successful
     return sol.value, ok, sol.stats["num_steps"]
@@ -304,60 +356,22 @@ def _solve_jaxopt(fn, theta0, args, max_steps, rtol, atol):
     return value, ok, state.iter_num
 
 
-def _chol_solve4(a, b):
-    """Solve the symmetric positive definite 4 x 4 system a x = b by an unrolled Cholesky.
-
-    Scalar operations only: vmapped over texels they are elementwise array ops, much faster on
-    XLA:CPU than a batched LU of tiny matrices.
-    """
-    n = 4
-    L = [[None] * n for _ in range(n)]
-    tiny = jnp.finfo(a.dtype).tiny
-    for i in range(n):
-        for j in range(i + 1):
-            s = a[i, j]
-            for k in range(j):
-                s = s - L[i][k] * L[j][k]
-            if i == j:
-                L[i][i] = jnp.sqrt(jnp.maximum(s, tiny))
-            else:
-                L[i][j] = s / L[j][j]
-    y = [None] * n
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s = s - L[i][k] * y[k]
-        y[i] = s / L[i][i]
-    x = [None] * n
-    for i in reversed(range(n)):
-        s = y[i]
-        for k in range(i + 1, n):
-            s = s - L[k][i] * x[k]
-        x[i] = s / L[i][i]
-    return jnp.stack(x)
-
-
 def _solve_native(fn, theta0, args, max_steps, rtol, atol):
-    """A plain Levenberg-Marquardt loop (Nielsen's damping update) on the explicit 3L x 4 Jacobian.
+    """A plain Levenberg-Marquardt loop (Nielsen's damping update) on the projected fit.
 
-    One forward-mode pass per step gives the residual and the Jacobian at the trial point together;
-    the damped step solves the 4 x 4 normal equations (J^T J + lam I) d = -J^T r by an unrolled
-    Cholesky. Termination on an accepted step as optimistix's: |d_i| <= atol + rtol |theta_i| and a
+    One pass over the lights per step gives cost, gradient g and Gauss-Newton matrix M at the
+    trial point together (`gauss_newton`); the damped step solves (M + lam I) d = -g by an
+    unrolled Cholesky. Termination on an accepted step as optimistix's: |d_i| <= atol + rtol |theta_i| and a
     cost change <= atol + rtol cost; or when no step can reduce the cost any more in the working precision (a stationary point).
     """
     dt = theta0.dtype
+    ratio_cl, w, lights = args
 
-    def lin(theta):
-        r, f = jax.linearize(lambda th: fn(th, args), theta)
-        jac = jax.vmap(f, out_axes=1)(jnp.eye(4, dtype=dt))
-        return r, jac
+    def linearized(theta):
+        gn = gauss_newton(theta, ratio_cl, w, lights, fn.model)
+        return gn.objective, gn.matrix, gn.grad
 
-    def norm_eq(r, jac):
-        return jac.T @ jac, jac.T @ r
-
-    r0, j0 = lin(theta0)
-    c0 = 0.5 * jnp.sum(r0 * r0)
-    a0, g0 = norm_eq(r0, j0)
+    c0, a0, g0 = linearized(theta0)
     lam0 = 1e-6 * jnp.max(jnp.diagonal(a0)) + jnp.finfo(dt).tiny ** 0.5
     two = jnp.asarray(2.0, dt)
 
@@ -366,20 +380,18 @@ def _solve_native(fn, theta0, args, max_steps, rtol, atol):
 
     def body(st):
         theta, cost, a, g, lam, nu = st["theta"], st["cost"], st["a"], st["g"], st["lam"], st["nu"]
-        d = _chol_solve4(a + lam * jnp.eye(4, dtype=dt), -g)
+        d = _chol_solve(a + lam * jnp.eye(4, dtype=dt), -g)
         t_new = theta + d
-        r_new, j_new = lin(t_new)
-        c_new = 0.5 * jnp.sum(r_new * r_new)
+        c_new, a_new, g_new = linearized(t_new)
         pred = 0.5 * jnp.dot(d, lam * d - g)  # predicted reduction of the linear model (> 0)
         actual = cost - c_new
         ratio = actual / jnp.maximum(pred, jnp.finfo(dt).tiny)
         accept = (ratio > 0) & jnp.isfinite(c_new)
-        a_new, g_new = norm_eq(r_new, j_new)
         small_step = jnp.all(jnp.abs(d) <= atol + rtol * jnp.abs(theta))
         small_df = jnp.abs(actual) <= atol + rtol * cost
         # a rejected step that could gain at most a rounding-level change of the cost: the cost is
         # at its minimum up to rounding (in float32 the cost is only known to ~1e-6 relative)
-        stalled = ~accept & (pred <= max(rtol * rtol, 8 * float(jnp.finfo(dt).eps)) * cost)
+        stalled = ~accept & (pred <= _rounding_floor(dt, rtol) * cost)
         done = jnp.where(accept, small_step & small_df, stalled)
         lam_acc = lam * jnp.maximum(1 / 3, 1 - (2 * ratio - 1) ** 3)
         return {"theta": jnp.where(accept, t_new, theta), "cost": jnp.where(accept, c_new, cost),
@@ -414,18 +426,21 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, "L"], light_dirs:
     ratio_cl = jnp.where(finite[None, :], ratio.T, 0.0)
     w = _normalized_weights(weight)
     n_valid = jnp.sum(w > 0)
+    lights = lights_of(light_dirs, view_dir)
     if theta0 is None:
-        theta0 = _initial_theta(ratio_cl, w, light_dirs, view_dir, model)
-    args = (ratio_cl, w, light_dirs, view_dir)
+        theta0 = _initial_theta(ratio_cl, w, lights, model)
+    args = (ratio_cl, w, lights)
     run = {"optimistix": _solve_optimistix, "jaxopt": _solve_jaxopt, "native": _solve_native}[solver]
     theta, ok, steps = run(_VarProResidual(model), theta0, args, max_steps, rtol, atol)
     bad = ~jnp.all(jnp.isfinite(theta))
     theta = jnp.where(bad, theta0, theta)
     normal, sx, sy = theta_to_geometry(theta)
-    pred, rho_d, rho_s = _projected(theta, ratio_cl, w, light_dirs, view_dir, model)
-    diff = ratio_cl - pred
-    cost = 0.5 * jnp.sum(w[None, :] * diff * diff)
-    sq = jnp.sum(jnp.where((w > 0)[None, :], diff * diff, 0.0))
+    a, b = columns(theta, lights, model)
+    rho_d, rho_s = _project_rho(a, b, ratio_cl, w)
+    diff = [ratio_cl[c] - rho_d[c] * a - rho_s[c] * b for c in range(3)]
+    sq_l = diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]
+    cost = 0.5 * jnp.sum(w * sq_l)
+    sq = jnp.sum(jnp.where(w > 0, sq_l, 0.0))
     residual = jnp.sqrt(sq / jnp.maximum(3 * n_valid, 1).astype(dt))
     # An exact fit (cost 0, e.g. a black texel) is a global minimum; the trust-region ratio of
     # predicted to actual reduction is 0/0 there and optimistix never accepts a step to stop on.
@@ -442,6 +457,16 @@ def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_
                view_dir: Float[Array, "3"], *, model: str = "reciprocal", solver: str = DEFAULT_SOLVER,
                max_steps: int = DEFAULT_MAX_STEPS, rtol: float | None = None,
                atol: float | None = None) -> TexelFit:
-    """Fit a batch of texels (jitted, vmapped over the leading axis of `ratio` and `weight`)."""
+    """Fit a batch of texels (jitted, vmapped over the leading axis of `ratio` and `weight`).
+
+    The lights are padded with weight-0 observations to a multiple of `_LIGHT_ALIGN`: every
+    texel's rows then start equally aligned, so the vectorized sums over lights round the same
+    way whatever a texel's place in the batch (a texel's fit is bit-identical in any batch).
+    """
+    pad = -light_dirs.shape[0] % _LIGHT_ALIGN
+    if pad:
+        ratio = jnp.pad(jnp.asarray(ratio), ((0, 0), (0, pad), (0, 0)))
+        weight = jnp.pad(jnp.asarray(weight), ((0, 0), (0, pad)))
+        light_dirs = jnp.concatenate([jnp.asarray(light_dirs), jnp.tile(jnp.asarray([[0.0, 0.0, 1.0]], light_dirs.dtype), (pad, 1))])
     one = functools.partial(fit_texel, model=model, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol)
     return jax.vmap(one, in_axes=(0, 0, None, None))(ratio, weight, light_dirs, view_dir)

@@ -26,7 +26,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._math import dot, normalize, safe_div
 
 __all__ = ["Lobe", "BTFTexel", "MODELS", "SIGMA_FLOOR", "COS_FLOOR", "tangent_frame", "slope_distribution",
-           "lobe_reflectance", "reflectance", "brdf", "half_vector", "diffuse_normal"]
+           "slope_distribution_from_components", "specular_factor", "lobe_reflectance", "reflectance", "brdf", "half_vector", "diffuse_normal"]
 
 MODELS = ("reciprocal", "paper")
 SIGMA_FLOOR = 1e-3  # slopes below this are numerically a mirror; the fit floors sigma here
@@ -102,16 +102,39 @@ def half_vector(wi: Float[ArrayLike, "... 3"], wo: Float[ArrayLike, "... 3"]) ->
     return normalize(jnp.asarray(wi) + jnp.asarray(wo))
 
 
+def slope_distribution_from_components(ht: Float[ArrayLike, "..."], hb: Float[ArrayLike, "..."],
+                                       hn: Float[ArrayLike, "..."], sigma_x: Float[ArrayLike, "..."],
+                                       sigma_y: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
+    """D of eq. 1 from the half vector's components in the lobe frame (h.T, h.B, h.N).
+
+    The one implementation of D: `slope_distribution` projects a half vector and calls it; the
+    fit evaluates it on structure-of-arrays components of all light directions at once.
+    """
+    sx = jnp.maximum(sigma_x, SIGMA_FLOOR)
+    sy = jnp.maximum(sigma_y, SIGMA_FLOOR)
+    front = hn > 1e-6
+    safe_hn = jnp.where(front, hn, 1.0)
+    exponent = ((ht / sx) ** 2 + (hb / sy) ** 2) / safe_hn**2
+    return jnp.where(front, jnp.exp(-jnp.minimum(exponent, 80.0)), 0.0)
+
+
 def slope_distribution(h: Float[ArrayLike, "... 3"], lobe: Lobe) -> Float[Array, "..."]:
     """D of eq. 1 for the half vector `h` (sample frame)."""
     t, b, n = tangent_frame(lobe.normal)
-    hn = dot(h, n)
-    sx = jnp.maximum(lobe.sigma_x, SIGMA_FLOOR)
-    sy = jnp.maximum(lobe.sigma_y, SIGMA_FLOOR)
-    front = hn > 1e-6
-    safe_hn = jnp.where(front, hn, 1.0)
-    exponent = ((dot(h, t) / sx) ** 2 + (dot(h, b) / sy) ** 2) / safe_hn**2
-    return jnp.where(front, jnp.exp(-jnp.minimum(exponent, 80.0)), 0.0)
+    return slope_distribution_from_components(dot(h, t), dot(h, b), dot(h, n), lobe.sigma_x, lobe.sigma_y)
+
+
+def specular_factor(d: Float[ArrayLike, "..."], cos_i: Float[ArrayLike, "..."], cos_r: Float[ArrayLike, "..."], *,
+                    model: str = "reciprocal") -> Float[Array, "..."]:
+    """The specular part of R per unit rho_s: D / cos_r (reciprocal) or D / (cos_i cos_r) (paper),
+    0 unless both directions are above the lobe's tangent plane."""
+    if model not in MODELS:
+        raise ValueError(f"unknown model {model!r}: use one of {MODELS}")
+    lit = (cos_i > 0) & (cos_r > 0)
+    denom = jnp.maximum(cos_r, COS_FLOOR)
+    if model == "paper":
+        denom = denom * jnp.maximum(cos_i, COS_FLOOR)
+    return jnp.where(lit, safe_div(d, denom), 0.0)
 
 
 def lobe_reflectance(lobe: Lobe, wi: Float[ArrayLike, "... 3"], wo: Float[ArrayLike, "... 3"], *,
@@ -120,13 +143,8 @@ def lobe_reflectance(lobe: Lobe, wi: Float[ArrayLike, "... 3"], wo: Float[ArrayL
     if model not in MODELS:
         raise ValueError(f"unknown model {model!r}: use one of {MODELS}")
     n = normalize(lobe.normal)
-    cos_i, cos_r = dot(wi, n), dot(wo, n)
-    lit = (cos_i > 0) & (cos_r > 0)
     d = slope_distribution(half_vector(wi, wo), lobe)
-    denom = jnp.maximum(cos_r, COS_FLOOR)
-    if model == "paper":
-        denom = denom * jnp.maximum(cos_i, COS_FLOOR)
-    return jnp.where(lit, safe_div(d, denom), 0.0)[..., None] * lobe.rho_s
+    return specular_factor(d, dot(wi, n), dot(wo, n), model=model)[..., None] * lobe.rho_s
 
 
 def diffuse_normal(texel: BTFTexel) -> Float[Array, "... 3"]:

@@ -228,22 +228,23 @@ def test_degenerate_texels(data, fit_optx, fit_jaxopt, fit_native):
         assert np.all(np.asarray(f.normal[:, 2]) > 0)
         assert np.all(np.asarray(f.sigma_x) >= SIGMA_FLOOR)
     # the converged flag is the optimistix result code (native: its own termination test): where it
-    # says converged the solver stopped before max_steps at a stationary point (gradient of the cost
-    # ~ 0 w.r.t. the solver's parameters, by central differences).
+    # says converged the solver stopped before max_steps at a stationary point: the cost's gradient
+    # w.r.t. the solver's parameters at the fitted rho ~ 0 (central differences of texel_cost, the
+    # explicit model; the small ridge on rho does not depend on theta, so this is the stationarity
+    # of the solvers' objective too).
     @jax.jit
-    def cost(th, r, w):
+    def cost(th, rd, rs, r, w):
         n, sx, sy = theta_to_geometry(th)
-        rd, rs = project_rho(basis(n, sx, sy, LIGHTS, VIEW), r.T, w / jnp.mean(w))
         return texel_cost(rd, rs, n, sx, sy, r, w, LIGHTS, VIEW)
 
     for f, i in ((f, i) for f in (fit_optx, fit_native) for i in range(ratio.shape[0])):
         if not bool(f.converged[i]):
             continue
-        assert int(f.num_steps[i]) < 40
+        assert int(f.num_steps[i]) <= 40   # (native may meet its test on its last allowed step)
         theta = geometry_to_theta(f.normal[i], f.sigma_x[i], f.sigma_y[i])
         h = 1e-6
-        grad = np.array([(cost(theta + h * e, ratio[i], weight[i]) - cost(theta - h * e, ratio[i], weight[i])) / (2 * h)
-                         for e in np.eye(4)])
+        args = (f.rho_d[i], f.rho_s[i], ratio[i], weight[i])
+        grad = np.array([(cost(theta + h * e, *args) - cost(theta - h * e, *args)) / (2 * h) for e in np.eye(4)])
         scale = max(float(f.cost[i]), 1e-12)
         # gradient small relative to the cost (a relative change of the cost per unit parameter)
         assert np.abs(grad).max() < 1e-3 * scale + 1e-9, (i, grad, scale)
