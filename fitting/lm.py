@@ -29,8 +29,9 @@ valid observations.
 
 Starting values: a photometric-stereo normal (weighted least squares of the luminance on the
 light directions, re-solved twice without the specular outliers and attached shadows) and the
-half vector of the brightest observation as two normal candidates, times a 3 x 3 grid of
-(sigma_x, sigma_y); the candidate with the lowest projected objective starts the solver.
+half vector of the brightest observation as two normal candidates (the better at sigma = 0.1
+kept), times a 3 x 3 grid of (sigma_x, sigma_y); the candidate with the lowest projected
+objective starts the solver.
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ SOLVERS = ("native", "optimistix", "jaxopt")
 DEFAULT_SOLVER = "optimistix"
 SIGMA_STARTS = (0.03, 0.1, 0.3)
 DEFAULT_MAX_STEPS = 40
-_LIGHT_ALIGN = 16   # lights per 64 bytes of float32
+_ALIGN = 16   # float32 lanes of a 64-byte vector
 
 
 class TexelFit(eqx.Module):
@@ -264,12 +265,14 @@ def _initial_theta(ratio_cl, w, lights, model):
     n_peak = normalize(jnp.stack([c[brightest] for c in lights.h]))  # the half vector of the brightest light
     n_peak = jnp.where(n_peak[2] > 0.05, n_peak, n_ps)
     sig = jnp.asarray(SIGMA_STARTS, dt)
-    sx, sy = jnp.meshgrid(sig, sig, indexing="ij")
-    sx, sy = sx.reshape(-1), sy.reshape(-1)
+    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model))
+    # the better normal at the middle slopes, then the 3 x 3 slopes with that normal
+    mid = sig[len(SIGMA_STARTS) // 2]
     normals = jnp.stack([n_ps, n_peak])
-    cand = jax.vmap(lambda n: jax.vmap(lambda a, b: geometry_to_theta(n, a, b))(sx, sy))(normals).reshape(-1, 4)
-    costs = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model))(cand)
-    return cand[jnp.argmin(costs)]
+    normal = normals[jnp.argmin(score(jax.vmap(lambda n: geometry_to_theta(n, mid, mid))(normals)))]
+    sx, sy = jnp.meshgrid(sig, sig, indexing="ij")
+    cand = jax.vmap(lambda a, b: geometry_to_theta(normal, a, b))(sx.reshape(-1), sy.reshape(-1))
+    return cand[jnp.argmin(score(cand))]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -459,14 +462,22 @@ def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_
                atol: float | None = None) -> TexelFit:
     """Fit a batch of texels (jitted, vmapped over the leading axis of `ratio` and `weight`).
 
-    The lights are padded with weight-0 observations to a multiple of `_LIGHT_ALIGN`: every
-    texel's rows then start equally aligned, so the vectorized sums over lights round the same
-    way whatever a texel's place in the batch (a texel's fit is bit-identical in any batch).
+    A texel's fit is bit-identical in any batch, at any place: the lights are padded with
+    weight-0 observations and the batch with copies of its last texel to multiples of `_ALIGN`,
+    so every texel's rows start equally aligned and every texel falls in a full vector lane
+    (XLA:CPU's remainder loops use scalar exp/log, which round differently).
     """
-    pad = -light_dirs.shape[0] % _LIGHT_ALIGN
-    if pad:
-        ratio = jnp.pad(jnp.asarray(ratio), ((0, 0), (0, pad), (0, 0)))
-        weight = jnp.pad(jnp.asarray(weight), ((0, 0), (0, pad)))
-        light_dirs = jnp.concatenate([jnp.asarray(light_dirs), jnp.tile(jnp.asarray([[0.0, 0.0, 1.0]], light_dirs.dtype), (pad, 1))])
+    ratio, weight, light_dirs = jnp.asarray(ratio), jnp.asarray(weight), jnp.asarray(light_dirs)
+    n_texels = ratio.shape[0]
+    pad_l = -light_dirs.shape[0] % _ALIGN
+    pad_t = -n_texels % _ALIGN
+    if pad_l:
+        ratio = jnp.pad(ratio, ((0, 0), (0, pad_l), (0, 0)))
+        weight = jnp.pad(weight, ((0, 0), (0, pad_l)))
+        light_dirs = jnp.concatenate([light_dirs, jnp.tile(jnp.asarray([[0.0, 0.0, 1.0]], light_dirs.dtype), (pad_l, 1))])
+    if pad_t:
+        ratio = jnp.concatenate([ratio, jnp.repeat(ratio[-1:], pad_t, axis=0)])
+        weight = jnp.concatenate([weight, jnp.repeat(weight[-1:], pad_t, axis=0)])
     one = functools.partial(fit_texel, model=model, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol)
-    return jax.vmap(one, in_axes=(0, 0, None, None))(ratio, weight, light_dirs, view_dir)
+    out = jax.vmap(one, in_axes=(0, 0, None, None))(ratio, weight, light_dirs, view_dir)
+    return jax.tree_util.tree_map(lambda x: x[:n_texels], out) if pad_t else out
