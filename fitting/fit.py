@@ -1,9 +1,9 @@
-"""Fit a whole capture: chunks of texels, sharded over the local devices, checkpointed, resumable.
+"""Fit a whole capture: chunks of texels, split over the local devices, checkpointed, resumable.
 
 `fit_capture(CAPTURE_DIR, BTF_DIR)` loads and validates the capture (nothing is written when it is
 malformed), merges the exposure brackets, fits every texel with `fitting.lm.fit_texels` in chunks
-of `chunk` texels (each chunk's texels sharded over all local JAX devices: `NamedSharding` on a 1-D mesh; each
-device fits its share in tiles whose size does not depend on the device count),
+of `chunk` texels (each chunk split over all local JAX devices, each device fitting its share in
+tiles whose size does not depend on the device count: the maps are bit-identical on 1 or N devices),
 and writes the BTF directory: level 0 through `jaxrender.io.write_btf` (`btf.json` last), PNG
 previews, then the EM pyramid (`fitting.pyramid.build_pyramid`, which rewrites `btf.json` last).
 
@@ -53,39 +53,38 @@ def _layout(chunk: int, n_devices: int) -> tuple[int, int]:
 
 
 @functools.lru_cache(maxsize=None)
-def _sharded_fit(n_devices: int, tile: int, model: str, solver: str, max_steps: int):
-    """`fit_texels` over `S x (D tile)` texels: `lax.map` over the S steps, each step one vmapped
-    Levenberg-Marquardt solve of `D x tile` texels whose axis is sharded over the first `n_devices`
-    local devices (`NamedSharding` on a 1-D mesh), so every device fits `tile` texels per step.
+def _tile_fit(tile: int, model: str, solver: str, max_steps: int):
+    """One device's share: `lax.map` over tiles of `tile` texels, each one vmapped solve.
 
-    (Not `vmap` over a device axis: that batches the solver's while loop once more and runs 5-10x
-    slower on CPU; not `jax.shard_map`: lineax's operator structure checks reject its types.)
+    Every device runs this same program on a contiguous share of the chunk (inputs committed to
+    the device; JAX dispatches asynchronously, so the devices work at once). A texel keeps its
+    place in a tile of the same size on 1 or N devices and meets the same compiled program, so
+    the maps are bit-identical whatever the device count. (Partitioning one program over a mesh
+    rounds differently per device count; `vmap` over a device axis batches the solver loop a
+    second time, 5-10x slower on CPU; `jax.shard_map`/`pmap` meet lineax's structure checks.)
     """
-    devices = np.asarray(jax.local_devices()[:n_devices])
-    mesh = jax.sharding.Mesh(devices, ("texels",))
-    spec = jax.sharding.PartitionSpec(None, "texels")
-    shard = jax.sharding.NamedSharding(mesh, spec)
-    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-
-    def fit_step(rw, light_dirs, view_dir):
-        ratio, weight = jax.lax.with_sharding_constraint(rw, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("texels")))
-        return fit_texels(ratio, weight, light_dirs, view_dir, model=model, solver=solver, max_steps=max_steps)
 
     def fn(ratio, weight, light_dirs, view_dir):
-        return jax.lax.map(lambda rw: fit_step(rw, light_dirs, view_dir), (ratio, weight))
+        out = jax.lax.map(lambda rw: fit_texels(rw[0], rw[1], light_dirs, view_dir, model=model, solver=solver,
+                                                max_steps=max_steps), (ratio, weight))
+        return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
-    return jax.jit(fn, in_shardings=(shard, shard, replicated, replicated), out_shardings=shard), shard
+    return jax.jit(fn)
 
 
 def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_steps) -> dict[str, np.ndarray]:
-    """Fit `n_devices * per_device` texels (already padded); returns flat numpy fields."""
-    n_dev = jax.local_device_count()
-    fn, shard = _sharded_fit(n_dev, tile, model, solver, max_steps)
-    steps = (-1, n_dev * tile)
-    ratio = jax.device_put(ratio.reshape(steps + ratio.shape[1:]), shard)
-    weight = jax.device_put(weight.reshape(steps + weight.shape[1:]), shard)
-    out: TexelFit = fn(ratio, weight, jnp.asarray(light_dirs), jnp.asarray(view_dir))
-    return {name: np.asarray(getattr(out, name)).reshape((-1,) + getattr(out, name).shape[2:]) for name in _FIELDS}
+    """Fit `n_devices * per_device` texels (already padded) over the local devices; flat numpy fields."""
+    devices = jax.local_devices()
+    fn = _tile_fit(tile, model, solver, max_steps)
+    per_device = ratio.shape[0] // len(devices)
+    outs = []
+    for d, dev in enumerate(devices):   # dispatched asynchronously: the devices run at once
+        share = slice(d * per_device, (d + 1) * per_device)
+        place = jax.sharding.SingleDeviceSharding(dev)
+        r = jax.device_put(ratio[share].reshape((-1, tile) + ratio.shape[1:]), place)
+        w = jax.device_put(weight[share].reshape((-1, tile) + weight.shape[1:]), place)
+        outs.append(fn(r, w, jax.device_put(np.asarray(light_dirs), place), jax.device_put(np.asarray(view_dir), place)))
+    return {name: np.concatenate([np.asarray(getattr(o, name)) for o in outs]) for name in _FIELDS}
 
 
 def _fingerprint(obs, settings: dict) -> str:
@@ -167,9 +166,13 @@ def fit_maps(obs, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK, m
         path = partial / f"chunk_{i:06d}.npz" if partial is not None else None
         result = _load_chunk(path, count) if path is not None and path.is_file() else None
         if result is None:
-            idx = np.minimum(np.arange(start, start + padded), start + count - 1)  # pad with the last texel
-            out = _chunk_fit(ratio[idx], weight[idx], obs.light_dirs, obs.view_dir, tile=tile, model=model,
-                             solver=solver, max_steps=max_steps)
+            if count == padded:   # a view: no copy of the chunk's observations
+                chunk_ratio, chunk_weight = ratio[start:start + count], weight[start:start + count]
+            else:
+                idx = np.minimum(np.arange(start, start + padded), start + count - 1)  # pad with the last texel
+                chunk_ratio, chunk_weight = ratio[idx], weight[idx]
+            out = _chunk_fit(chunk_ratio, chunk_weight, obs.light_dirs, obs.view_dir, tile=tile, model=model, solver=solver,
+                             max_steps=max_steps)
             result = {k: v[:count] for k, v in out.items()}
             if path is not None:
                 _save_chunk(path, result)
