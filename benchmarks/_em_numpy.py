@@ -125,9 +125,13 @@ def em_texels_numpy(children: dict, *, order=DEFAULT_ORDER, iterations=DEFAULT_I
     dtype = children["weight"].dtype
     if tol is None:
         tol = 1e-5 if dtype == np.float32 else 1e-10
-    cat = lambda k: np.concatenate([children["lobe0"][k], children["lobe1"][k]], axis=1)  # noqa: E731
-    normal, sx_c, sy_c, rho_s = cat("normal"), cat("sigma_x"), cat("sigma_y"), cat("rho_s")  # N 8 ...
-    mass_l = 0.25 * np.concatenate([1 - children["weight"], children["weight"]], axis=1)   # N 8
+    if not np.any(children["weight"]):   # one-lobe children (as fitting.em): lobe 1 carries no mass, skip it
+        cat = lambda k: children["lobe0"][k]  # noqa: E731
+        mass_l = 0.25 * (1 - children["weight"])                                               # N 4
+    else:
+        cat = lambda k: np.concatenate([children["lobe0"][k], children["lobe1"][k]], axis=1)  # noqa: E731
+        mass_l = 0.25 * np.concatenate([1 - children["weight"], children["weight"]], axis=1)   # N 8
+    normal, sx_c, sy_c, rho_s = cat("normal"), cat("sigma_x"), cat("sigma_y"), cat("rho_s")  # N 8 (or 4) ...
     nodes, gw = np.polynomial.hermite.hermgauss(order)
     a, b = (g.ravel().astype(dtype) for g in np.meshgrid(nodes, nodes, indexing="ij"))
     qw = (np.outer(gw, gw).ravel() / math.pi).astype(dtype)

@@ -398,16 +398,29 @@ def _component_lobes(h, w, e, resp, m0, m1, mass):
     return rho_s, normal, sx, sy
 
 
-def _texels_kernel(children: BTFTexel, order: int, iterations: int, tol: float | None, max_lobes: int):
-    """Coarse texels from children with leading axes `N 4` -> (BTFTexel N, EMInfo N)."""
+def _texels_kernel(children: BTFTexel, order: int, iterations: int, tol: float | None, max_lobes: int,
+                   one_lobe_children: bool = False):
+    """Coarse texels from children with leading axes `N 4` -> (BTFTexel N, EMInfo N).
+
+    `one_lobe_children`: every child has weight 0 (level 0 of a fit), so only lobe 0 of each
+    child carries mass; its lobe 1 would add exact zeros to every sum and is left out (half the
+    nodes; the same texels up to the order of the sums).
+    """
     dtype = children.weight.dtype
     if tol is None:
         tol = 1e-5 if dtype == jnp.float32 else 1e-10
-    lobes = jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=1), children.lobe0, children.lobe1)   # N 8 ...
+    if one_lobe_children:
+        children = eqx.tree_at(lambda c: c.lobe1, children, children.lobe0)
+        lobes = children.lobe0                                                                           # N 4 ...
+        child_weight = jnp.zeros_like(children.weight)
+    else:
+        lobes = jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=1), children.lobe0, children.lobe1)   # N 8 ...
+        child_weight = children.weight
     comps = lambda a: tuple(jnp.transpose(a[..., i]) for i in range(3))  # noqa: E731  N 8 3 -> 3 x (8 N)
     normal, rho_s = comps(lobes.normal), comps(lobes.rho_s)
     sigma_x, sigma_y = jnp.transpose(lobes.sigma_x), jnp.transpose(lobes.sigma_y)
-    mass_l = 0.25 * jnp.transpose(jnp.concatenate([1 - children.weight, children.weight], axis=1))       # 8 N
+    mass_l = 0.25 * jnp.transpose(1 - child_weight if one_lobe_children
+                                  else jnp.concatenate([1 - child_weight, child_weight], axis=1))       # 8 (or 4) N
     h, x0, x1, q = _lobe_nodes(normal, sigma_x, sigma_y, order)                                          # 8 Q N
     area = mass_l * jnp.pi * jnp.maximum(sigma_x, SIGMA_FLOOR) * jnp.maximum(sigma_y, SIGMA_FLOOR)       # 8 N
     qq = q[None, :, None]
@@ -516,23 +529,25 @@ def gather_children(level: BTFTexel) -> BTFTexel:
 _BLOCK = 256  # texels per block of a batch: the EM loop of a block stops when ITS texels converge
 
 
-@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4))
-def _em_batch(children: BTFTexel, order: int, iterations: int, tol: float | None, max_lobes: int = 2):
+@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
+def _em_batch(children: BTFTexel, order: int, iterations: int, tol: float | None, max_lobes: int = 2,
+              one_lobe_children: bool = False):
     n = children.weight.shape[0]
     if n <= _BLOCK or n % _BLOCK:
-        return _texels_kernel(children, order, iterations, tol, max_lobes)
+        return _texels_kernel(children, order, iterations, tol, max_lobes, one_lobe_children)
     # Blocks of _BLOCK texels one after the other (lax.map): the EM while-loop of each block runs
     # only as many iterations as its slowest texel (and none where no texel needs EM) instead of
     # the whole batch's slowest; every texel's result is the same as in one batch.
     blocks = jax.tree.map(lambda a: a.reshape((n // _BLOCK, _BLOCK) + a.shape[1:]), children)
-    out = jax.lax.map(lambda c: _texels_kernel(c, order, iterations, tol, max_lobes), blocks)
+    out = jax.lax.map(lambda c: _texels_kernel(c, order, iterations, tol, max_lobes, one_lobe_children), blocks)
     return jax.tree.map(lambda a: a.reshape((n,) + a.shape[2:]), out)
 
 
 def em_texels(children: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: int = DEFAULT_ITERATIONS,
-              tol: float | None = None) -> tuple[BTFTexel, EMInfo]:
-    """`em_texel` over a leading texel axis (`N 4` children -> `N` texels), jitted, batched."""
-    return _em_batch(children, order, iterations, tol)
+              tol: float | None = None, one_lobe_children: bool = False) -> tuple[BTFTexel, EMInfo]:
+    """`em_texel` over a leading texel axis (`N 4` children -> `N` texels), jitted, batched.
+    `one_lobe_children=True` promises that every child's weight is 0 (faster; see `_texels_kernel`)."""
+    return _em_batch(children, order, iterations, tol, 2, one_lobe_children)
 
 
 def moment_matched_texels(children: BTFTexel, *, order: int = DEFAULT_ORDER) -> BTFTexel:
@@ -562,10 +577,12 @@ def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: in
     n_padded = -(-n // size) * size
     index = np.minimum(np.arange(n_padded), n - 1)
     padded = jax.tree.map(lambda a: a[index], flat)
+    one_lobe = not np.any(flat.weight)   # e.g. level 0 of a fit: the cheaper kernel
     pieces = []
     for start in range(0, n_padded, size):
         batch = jax.tree.map(lambda a: a[start:start + size], padded)
-        pieces.append(em_texels(batch, order=order, iterations=iterations, tol=tol))  # dispatched asynchronously
+        pieces.append(em_texels(batch, order=order, iterations=iterations, tol=tol,
+                                one_lobe_children=one_lobe))  # dispatched asynchronously
     out = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs], axis=0)[:n].reshape((hh, ww) + xs[0].shape[1:]),
                        *pieces)
     return jax.tree.map(jnp.asarray, out)
