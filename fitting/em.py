@@ -556,24 +556,25 @@ def moment_matched_texels(children: BTFTexel, *, order: int = DEFAULT_ORDER) -> 
 
 
 def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: int = DEFAULT_ITERATIONS,
-                  tol: float | None = None, chunk: int = 256) -> tuple[BTFTexel, EMInfo]:
+                  tol: float | None = None, chunk: int = 4096) -> tuple[BTFTexel, EMInfo]:
     """The next pyramid level of an `H W` BTFTexel level: `ceil(H/2) ceil(W/2)`.
 
-    Texels are processed in fixed-size chunks (buckets of 16, 256, 4096, ... texels up to `chunk`;
-    the last chunk padded by repeating a texel) so that a whole pyramid reuses a few compiled
-    kernels (two with the default `chunk`=256); the Python loop runs over chunks, never over
-    texels, and dispatches them asynchronously. Small chunks keep the EM loop short: it runs until
-    the slowest texel OF THE CHUNK has converged. Splitting into chunks and concatenating happen on
-    the host (numpy), the EM itself in `em_texels`.
+    Texels are processed in fixed-size chunks, the largest of the buckets 16, 256, 4096, ...
+    (up to `chunk`) that the level fills (the last chunk padded by repeating a texel), so that a
+    whole pyramid reuses a few compiled kernels (three with the default `chunk`=4096); the Python
+    loop runs over chunks, never over texels, and dispatches them asynchronously. Inside a chunk,
+    blocks of 256 texels run their EM loops one after another (`_em_batch`), each until its own
+    slowest texel has converged. Splitting into chunks and concatenating happen on the host
+    (numpy: cheaper than many small device ops), the EM itself in `em_texels`. (Chunks of 4096
+    instead of 256: the 256 x 256 woven pyramid 1.3x faster, from fewer dispatches and copies.)
     """
     children = jax.tree.map(np.asarray, _gather_jit(level))
     hh, ww = children.weight.shape[:2]
     n = hh * ww
     flat = jax.tree.map(lambda a: a.reshape((n,) + a.shape[2:]), children)
-    size = 16  # buckets 16, 256, 4096, ... up to `chunk`: a whole pyramid compiles a few kernels
-    while size < min(n, chunk):
+    size = 16  # buckets 16, 256, 4096, ...: the largest one the level fills (at most `chunk`)
+    while size * 16 <= min(n, chunk):
         size *= 16
-    size = min(size, chunk)
     n_padded = -(-n // size) * size
     index = np.minimum(np.arange(n_padded), n - 1)
     padded = jax.tree.map(lambda a: a[index], flat)
