@@ -29,7 +29,7 @@ truth = fitting.synth_maps(k_maps, size)
 obs = fitting.synth_observations(k_obs, truth, dirs)   # 6 exposures, 8-bit, shot + read noise, HDR merge
 print(obs.ratio.shape, "valid observations per texel:", int(np.median(obs.n_valid)))"""),
     nbf.v4.new_markdown_cell("""## Fit
-`fit_maps` fits every texel (chunks of texels, vmapped, sharded over the local devices). rho_d and
+`fit_maps` fits every texel (chunks of texels, vmapped, split over the local devices). rho_d and
 rho_s are solved in closed form inside the solver (variable projection); the solver sees the normal
 and the two slopes."""),
     nbf.v4.new_code_cell("""t0 = time.perf_counter()
