@@ -6,7 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrender.shadows import heightfield_shadow, horizon_directions, horizon_map, horizon_shadow, triangle_height
+from jaxrender.shadows import (heightfield_light, heightfield_shadow, horizon_directions, horizon_map, horizon_shadow,
+                               triangle_height)
 
 EXACT_TOL = 1e-12  # the fast search is exact: only float64 rounding of identical formulas differs
 AGREE_MIN = 0.99  # issue 3: the horizon shadow / incremental march agrees with a brute-force ray on >= 99 %
@@ -173,3 +174,38 @@ def test_dune_shadow_march_vs_dense_ray():
         ref = np.any(inside & (pts[:, 2:3] + ts * math.tan(el) < surf - 1e-6), axis=1)
         assert ref.any() and (~ref).any()
         assert np.mean(fast == ref) >= AGREE_MIN, (az_deg, np.mean(fast == ref))
+
+
+def test_dune_shadow_light_fraction_is_the_antialiased_test():
+    """heightfield_light: 1 exactly where heightfield_shadow says unblocked, 0 where the ray passes
+    more than one footprint's worth below the surface (a dense brute-force ray's depth), a ramp
+    in between."""
+    rng = np.random.default_rng(6)
+    n = 16
+    y, x = np.mgrid[0:n, 0:n] / n * 2 * np.pi
+    z = 2.0 * np.sin(x + 0.3 * np.cos(y)) ** 2 + 0.2 * rng.random((n, n))
+    pts_xy = rng.random((400, 2)) * (n - 1)
+    pts = np.concatenate([pts_xy, np.array([[_tri_height(z, a, b)] for a, b in pts_xy])], axis=1)
+    az, el = math.radians(170.0), math.radians(20.0)
+    light = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+    footprint = 0.25
+    lit = np.asarray(heightfield_light(jnp.asarray(z), jnp.asarray(pts), jnp.asarray(light), n_steps=n, bias=1e-6,
+                                       footprint=footprint))
+    blocked = np.asarray(heightfield_shadow(jnp.asarray(z), jnp.asarray(pts), jnp.asarray(light), n_steps=n, bias=1e-6))
+    np.testing.assert_array_equal(lit == 1.0, ~blocked)
+    assert np.all((lit >= 0) & (lit <= 1))
+    # dense reference depth: how far below the surface the ray passes (max over 1/200-cell steps)
+    ts = np.arange(1, 4000) * 0.005
+    qx = pts[:, :1] + ts * light[0] / math.cos(el)
+    qy = pts[:, 1:2] + ts * light[1] / math.cos(el)
+    inside = (qx >= 0) & (qx <= n - 1) & (qy >= 0) & (qy <= n - 1)
+    depth = np.max(np.where(inside, _tri_height_np(z, qx, qy) - 1e-6 - (pts[:, 2:3] + ts * math.tan(el)), -np.inf), axis=1)
+    width = footprint * math.tan(el)
+    # deep in shadow (the grid-line samples can miss the dense maximum by a little): 0
+    deep = depth > 1.5 * width
+    assert deep.sum() >= 20 and np.all(lit[deep] == 0.0)
+    ramp = (lit > 0) & (lit < 1)
+    assert ramp.any() and np.all(depth[ramp] > -1e-3) and np.all(depth[ramp] < 1.5 * width)
+    # footprint 0 is the binary test
+    hard = np.asarray(heightfield_light(jnp.asarray(z), jnp.asarray(pts), jnp.asarray(light), n_steps=n, bias=1e-6))
+    np.testing.assert_array_equal(hard, (~blocked).astype(hard.dtype))

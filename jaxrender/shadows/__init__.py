@@ -9,6 +9,7 @@ from ._shadow_map import texel_directions as texel_directions
 from ._pcss import pcf as pcf
 from ._pcss import pcss as pcss
 
+from ._heightfield import heightfield_light as heightfield_light
 from ._heightfield import heightfield_shadow as heightfield_shadow
 from ._heightfield import triangle_height as triangle_height
 from ._horizon import horizon_directions as horizon_directions

@@ -28,7 +28,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._math import normalize
 from ..camera import Camera
 from ..lights._sun import Sun
-from ..shadows._heightfield import heightfield_shadow, triangle_height
+from ..shadows._heightfield import heightfield_light, triangle_height
 from ..shadows._horizon import horizon_map, horizon_shadow
 from ..textures import bilinear, downsample2
 from ._dune import close_periodic, ray_cast_coherent, vertex_normals
@@ -126,9 +126,10 @@ class _Flags(eqx.Module):
 
 
 def _shade_points(maps: TerrainMaps, xy: Array, ripple_n: Array, grain: Array, hor: Array, sun: Sun,
-                  albedo: Array, sky: Array, flags: _Flags) -> Array:
+                  albedo: Array, sky: Array, flags: _Flags, texel: float) -> Array:
     """Radiance of dune points at world `xy` (... x 2) given their ripple normal, grain and
-    horizon slopes (looked up at the point's level)."""
+    horizon slopes (looked up at the point's level); `texel` is the shading texel's world size
+    (the dune shadow's edge is antialiased over it)."""
     dtype = xy.dtype
     ny, nx = maps.z.shape
     zd = triangle_height(maps.z, xy, spacing=maps.spacing)
@@ -148,9 +149,8 @@ def _shade_points(maps: TerrainMaps, xy: Array, ripple_n: Array, grain: Array, h
     lit = jnp.ones(xy.shape[:-1], dtype)
     if flags.dune_shadows:
         p = jnp.concatenate([xy, zd[..., None]], axis=-1)
-        blocked = heightfield_shadow(maps.z, p, light, spacing=maps.spacing, n_steps=flags.shadow_steps,
-                                     bias=1e-3 * maps.spacing)
-        lit = jnp.where(blocked, 0.0, lit)
+        lit = heightfield_light(maps.z, p, light, spacing=maps.spacing, n_steps=flags.shadow_steps,
+                                bias=1e-3 * maps.spacing, footprint=texel)
     if flags.ripple_shadows and flags.ripples:
         local = jnp.stack([jnp.sum(lb * t, -1), jnp.sum(lb * b, -1), jnp.sum(lb * nd, -1)], axis=-1)
         lit = jnp.where(horizon_shadow(jnp.moveaxis(hor, -1, 0), local), 0.0, lit)
@@ -177,7 +177,7 @@ def _shade_level(maps: TerrainMaps, ids: Array, l: int, sun: Sun, albedo: Array,
         row = jnp.mod(qj * n + a, r)
         col = jnp.mod(qi * n + bb, r)
         return _shade_points(maps, xy, maps.ripple_normals[l][row, col], maps.grain[l][row, col],
-                             maps.horizon[l][row, col], sun, albedo, sky, flags)
+                             maps.horizon[l][row, col], sun, albedo, sky, flags, maps.spacing / n)
 
     return jax.lax.map(one, ids, batch_size=max(1, min(batch, ids.shape[0])))
 
