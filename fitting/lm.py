@@ -41,7 +41,7 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from jaxrender.brdf import MODELS, BTFTexel, reflectance, tangent_frame
 from jaxrender._math import normalize
