@@ -154,24 +154,39 @@ def test_triangle_height_matches_transcription():
     np.testing.assert_allclose(_tri_height_np(z, pts[:, 0], pts[:, 1]), ref, atol=EXACT_TOL)
 
 
-def test_dune_shadow_march_vs_dense_ray():
-    rng = np.random.default_rng(5)
+def _dune_field(seed):
+    """A 16 x 16 dune-like heightfield and 400 points on its surface."""
+    rng = np.random.default_rng(seed)
     n = 16
     y, x = np.mgrid[0:n, 0:n] / n * 2 * np.pi
     z = 2.0 * np.sin(x + 0.3 * np.cos(y)) ** 2 + 0.2 * rng.random((n, n))
     pts_xy = rng.random((400, 2)) * (n - 1)
-    pts = np.concatenate([pts_xy, np.array([[_tri_height(z, a, b)] for a, b in pts_xy])], axis=1)
+    return n, z, np.concatenate([pts_xy, np.array([[_tri_height(z, a, b)] for a, b in pts_xy])], axis=1)
+
+
+def _sun(az_deg, el_deg):
+    az, el = math.radians(az_deg), math.radians(el_deg)
+    return np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]), el
+
+
+def _dense_depth(z, pts, light, el, n):
+    """Brute force: how far below the surface the ray from each point passes (max over steps of
+    1/200 cell inside the grid; > 0 = blocked)."""
+    ts = np.arange(1, 4000) * 0.005
+    qx = pts[:, :1] + ts * light[0] / math.cos(el)
+    qy = pts[:, 1:2] + ts * light[1] / math.cos(el)
+    inside = (qx >= 0) & (qx <= n - 1) & (qy >= 0) & (qy <= n - 1)
+    below = _tri_height_np(z, qx, qy) - 1e-6 - (pts[:, 2:3] + ts * math.tan(el))
+    return np.max(np.where(inside, below, -np.inf), axis=1)
+
+
+def test_dune_shadow_march_vs_dense_ray():
+    n, z, pts = _dune_field(5)
     for az_deg, el_deg in [(170.0, 20.0), (30.0, 12.0)]:
-        az, el = math.radians(az_deg), math.radians(el_deg)
-        light = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        light, el = _sun(az_deg, el_deg)
         fast = np.asarray(jax.jit(lambda p, l: heightfield_shadow(jnp.asarray(z), p, l, n_steps=n, bias=1e-6))(
             jnp.asarray(pts), jnp.asarray(light)))
-        ts = np.arange(1, 4000) * 0.005  # dense: 1/200 of a cell
-        qx = pts[:, :1] + ts * light[0] / math.cos(el)
-        qy = pts[:, 1:2] + ts * light[1] / math.cos(el)
-        inside = (qx >= 0) & (qx <= n - 1) & (qy >= 0) & (qy <= n - 1)
-        surf = _tri_height_np(z, qx, qy)
-        ref = np.any(inside & (pts[:, 2:3] + ts * math.tan(el) < surf - 1e-6), axis=1)
+        ref = _dense_depth(z, pts, light, el, n) > 0
         assert ref.any() and (~ref).any()
         assert np.mean(fast == ref) >= AGREE_MIN, (az_deg, np.mean(fast == ref))
 
@@ -180,26 +195,15 @@ def test_dune_shadow_light_fraction_is_the_antialiased_test():
     """heightfield_light: 1 exactly where heightfield_shadow says unblocked, 0 where the ray passes
     more than one footprint's worth below the surface (a dense brute-force ray's depth), a ramp
     in between."""
-    rng = np.random.default_rng(6)
-    n = 16
-    y, x = np.mgrid[0:n, 0:n] / n * 2 * np.pi
-    z = 2.0 * np.sin(x + 0.3 * np.cos(y)) ** 2 + 0.2 * rng.random((n, n))
-    pts_xy = rng.random((400, 2)) * (n - 1)
-    pts = np.concatenate([pts_xy, np.array([[_tri_height(z, a, b)] for a, b in pts_xy])], axis=1)
-    az, el = math.radians(170.0), math.radians(20.0)
-    light = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+    n, z, pts = _dune_field(6)
+    light, el = _sun(170.0, 20.0)
     footprint = 0.25
-    lit = np.asarray(heightfield_light(jnp.asarray(z), jnp.asarray(pts), jnp.asarray(light), n_steps=n, bias=1e-6,
-                                       footprint=footprint))
-    blocked = np.asarray(heightfield_shadow(jnp.asarray(z), jnp.asarray(pts), jnp.asarray(light), n_steps=n, bias=1e-6))
+    args = (jnp.asarray(z), jnp.asarray(pts), jnp.asarray(light))
+    lit = np.asarray(heightfield_light(*args, n_steps=n, bias=1e-6, footprint=footprint))
+    blocked = np.asarray(heightfield_shadow(*args, n_steps=n, bias=1e-6))
     np.testing.assert_array_equal(lit == 1.0, ~blocked)
     assert np.all((lit >= 0) & (lit <= 1))
-    # dense reference depth: how far below the surface the ray passes (max over 1/200-cell steps)
-    ts = np.arange(1, 4000) * 0.005
-    qx = pts[:, :1] + ts * light[0] / math.cos(el)
-    qy = pts[:, 1:2] + ts * light[1] / math.cos(el)
-    inside = (qx >= 0) & (qx <= n - 1) & (qy >= 0) & (qy <= n - 1)
-    depth = np.max(np.where(inside, _tri_height_np(z, qx, qy) - 1e-6 - (pts[:, 2:3] + ts * math.tan(el)), -np.inf), axis=1)
+    depth = _dense_depth(z, pts, light, el, n)
     width = footprint * math.tan(el)
     # deep in shadow (the grid-line samples can miss the dense maximum by a little): 0
     deep = depth > 1.5 * width
@@ -207,5 +211,5 @@ def test_dune_shadow_light_fraction_is_the_antialiased_test():
     ramp = (lit > 0) & (lit < 1)
     assert ramp.any() and np.all(depth[ramp] > -1e-3) and np.all(depth[ramp] < 1.5 * width)
     # footprint 0 is the binary test
-    hard = np.asarray(heightfield_light(jnp.asarray(z), jnp.asarray(pts), jnp.asarray(light), n_steps=n, bias=1e-6))
+    hard = np.asarray(heightfield_light(*args, n_steps=n, bias=1e-6))
     np.testing.assert_array_equal(hard, (~blocked).astype(hard.dtype))
