@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from jaxrender._math import dot, normalize
 from jaxrender.brdf import (COS_FLOOR, SIGMA_FLOOR, half_vector, slope_distribution_from_components, specular_factor,

@@ -26,12 +26,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxrender.io import atomic_path, write_btf, write_btf_previews
 
-from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, SOLVERS, TexelFit, default_tolerances, fit_texels
+from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, SOLVERS, default_tolerances, fit_texels
 
 __all__ = ["fit_capture", "fit_observations", "fit_maps", "level0_channels", "DEFAULT_CHUNK", "TILE"]
 
