@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import statistics
 import sys
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 
 
 def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
@@ -42,3 +44,30 @@ def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
     except KeyboardInterrupt:
         print(f"{prog} {name}: interrupted", file=sys.stderr)
         return 130
+
+
+def add_time_argument(parser: argparse.ArgumentParser, what: str = "render") -> None:
+    """`--time N`: after compiling, time N more runs (the render commands share this contract)."""
+    parser.add_argument("--time", type=int, default=0, metavar="N",
+                        help=f"after compiling, {what} N more times and print compile_s=... median_frame_s=...")
+
+
+def print_timing(compile_s: float, times: Sequence[float]) -> None:
+    """The one line `--time` prints: `compile_s=<float> median_frame_s=<float>`."""
+    print(f"compile_s={compile_s:.4f} median_frame_s={statistics.median(times):.4f}")
+
+
+def render_timed(render: Callable[[], object], repeats: int):
+    """render() once (compilation included), then `repeats` more timed runs printed with
+    `print_timing` when repeats > 0; returns the first result."""
+    start = time.perf_counter()
+    result = render()
+    compile_s = time.perf_counter() - start
+    if repeats > 0:
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            render()
+            times.append(time.perf_counter() - start)
+        print_timing(compile_s, times)
+    return result

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 from pathlib import Path
+
+from ._cli import add_time_argument, render_timed
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -24,8 +24,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ripple-size", type=int, default=64, help="ripple map size in texels (default 64)")
     parser.add_argument("--texels", type=int, default=64, help="ripple texels per dune quad at level 0 (default 64)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the automata, grain and dust (default 0)")
-    parser.add_argument("--time", type=int, default=0, metavar="N",
-                        help="after compiling, render N more times and print compile_s=... median_frame_s=...")
+    add_time_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -55,15 +54,6 @@ def run(args: argparse.Namespace) -> int:
                   dune_shadows=args.dune_shadows, ripple_shadows=args.ripple_shadows, dust=args.dust,
                   sun_elevation=args.sun_elevation, sun_azimuth=args.sun_azimuth, dune_size=args.dune_size,
                   ripple_size=args.ripple_size, texels=args.texels, seed=args.seed)
-    start = time.perf_counter()
-    image = render_desert(**kwargs)  # grows the fields, builds the maps, compiles
-    compile_s = time.perf_counter() - start
-    if args.time > 0:
-        times = []
-        for _ in range(args.time):
-            start = time.perf_counter()
-            render_desert(**kwargs)
-            times.append(time.perf_counter() - start)
-        print(f"compile_s={compile_s:.4f} median_frame_s={statistics.median(times):.4f}")
+    image = render_timed(lambda: render_desert(**kwargs), args.time)  # the first run grows the fields, builds the maps, compiles
     write_image(out, np.asarray(image, dtype=np.float32), exposure=EXPOSURE)
     return 0

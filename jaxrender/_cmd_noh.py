@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 import shutil
-import statistics
 from pathlib import Path
+
+from ._cli import add_time_argument, print_timing
 
 import numpy as np
 
@@ -24,8 +25,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--width", type=int, default=720)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--seed", type=int, default=2024, help="random seed (fires, light samples)")
-    parser.add_argument("--time", type=int, default=0, metavar="N",
-                        help="after compiling, render N more frames and print compile_s=... median_frame_s=...")
+    add_time_argument(parser, "render the frame")
 
 
 def _load_inputs(args):
@@ -81,7 +81,7 @@ def run(args) -> int:
             shutil.copytree(args.out, tmp, dirs_exist_ok=True)
         write_animation(tmp, frames, exposure=info["exposure"])
     if args.time > 0:
-        print(f"compile_s={info['compile_s']:.4f} median_frame_s={statistics.median(info['timed_s']):.4f}")
+        print_timing(info["compile_s"], info["timed_s"])
     else:
         print(f"wrote {args.frames} frames and noh.gif to {args.out}")
     return 0

@@ -7,9 +7,9 @@ A thin layer over `jaxrender.scenes.load_shafts_scene`, `jaxrender.shafts.render
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 from pathlib import Path
+
+from ._cli import add_time_argument, render_timed
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -24,8 +24,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quantize-bits", type=int, default=0,
                         help="hardware emulation: bits of tables, maps and frame buffer (0 = float, 8 = paper)")
     parser.add_argument("--samples", type=int, default=180, help="ray-march samples per ray (default 180)")
-    parser.add_argument("--time", type=int, default=0, metavar="N",
-                        help="after compiling, render N more times and print compile_s=... median_frame_s=...")
+    add_time_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -60,15 +59,6 @@ def run(args: argparse.Namespace) -> int:
                                                  quantize_bits=args.quantize_bits))
     else:
         render = jax.jit(lambda s: render_raymarch(s, samples=args.samples))
-    start = time.perf_counter()
-    image = jax.block_until_ready(render(scene))
-    compile_s = time.perf_counter() - start
-    if args.time > 0:
-        times = []
-        for _ in range(args.time):
-            start = time.perf_counter()
-            jax.block_until_ready(render(scene))
-            times.append(time.perf_counter() - start)
-        print(f"compile_s={compile_s:.4f} median_frame_s={statistics.median(times):.4f}")
+    image = render_timed(lambda: jax.block_until_ready(render(scene)), args.time)
     write_image(out, np.asarray(image, dtype=np.float32))
     return 0
