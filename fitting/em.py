@@ -89,7 +89,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxrender._math import normalize
+from jaxrender._math import normalize, sum_short
 from jaxrender.brdf import SIGMA_FLOOR, BTFTexel, Lobe
 
 __all__ = ["GaussianMixture", "EMInfo", "em_fit", "weighted_log_likelihood", "moment_match", "lobe_slope_nodes",
@@ -150,24 +150,6 @@ def _tangent_frame3(nx, ny, nz):
     return (tx, ty, tz), (ny * tz - nz * ty, nz * tx - nx * tz, nx * ty - ny * tx), (nx, ny, nz)
 
 
-_UNROLL = 16  # axes up to this length are summed as written-out elementwise adds
-
-
-def _sum(a, axis):
-    """`jnp.sum` over `axis` (int or tuple); short axes (e.g. the 9 nodes of a group, a MIDDLE
-    axis) are added slice by slice, which XLA CPU fuses into one vectorized elementwise loop over
-    the texel axis (its reduction of a short middle axis is several times slower). Used where
-    measured faster; the leading-axis sums stay `jnp.sum`."""
-    axes = sorted(ax % a.ndim for ax in ((axis,) if isinstance(axis, int) else axis))
-    for ax in reversed(axes):
-        if a.shape[ax] <= _UNROLL:
-            parts = [jax.lax.index_in_dim(a, i, ax, keepdims=False) for i in range(a.shape[ax])]
-            a = functools.reduce(jnp.add, parts)
-        else:
-            a = jnp.sum(a, axis=ax)
-    return a
-
-
 def _logsumexp0(a):
     top = jnp.max(a, axis=0)
     safe = jnp.where(jnp.isfinite(top), top, 0.0)
@@ -216,7 +198,7 @@ def _em_core(x0, x1, w, params, *, iterations, tol, var_floor, virtual, run):
     count as converged).
     Returns (parameters, log-likelihood N, iterations N, converged N, responsibilities G K N)."""
     w = w / jnp.maximum(jnp.sum(w, axis=(0, 1)), _TINY)[None, None]
-    mass = _sum(w, axis=1)                                                                     # G N
+    mass = sum_short(w, axis=1)                                                                     # G N
     qn = w / jnp.maximum(mass, _TINY)[:, None, :]
 
     def loglik(lse):

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import functools
+
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -40,3 +43,21 @@ def outer(s: ArrayLike, v: Float[ArrayLike, "3"]) -> Array:
     """s[..., None] * v without implicit rank promotion: shape s.shape + v.shape."""
     s, v = jnp.asarray(s), jnp.asarray(v)
     return jnp.expand_dims(s, -1) * jnp.reshape(v, (1,) * s.ndim + v.shape)
+
+
+SHORT_AXIS = 16  # axes up to this length are summed as written-out elementwise adds
+
+
+def sum_short(a: ArrayLike, axis: int | tuple[int, ...]) -> Array:
+    """`jnp.sum` over `axis` (int or tuple); axes of at most SHORT_AXIS entries (the 9 nodes of a
+    lobe, the 6 sub-planes of an interval) are added slice by slice. XLA on CPU fuses that into
+    one vectorized elementwise loop, while its reduction over a short axis runs several times
+    slower; in reverse mode the slices transpose to cheap pads instead of a reduction kernel."""
+    a = jnp.asarray(a)
+    axes = sorted(ax % a.ndim for ax in ((axis,) if isinstance(axis, int) else axis))
+    for ax in reversed(axes):
+        if a.shape[ax] <= SHORT_AXIS:
+            a = functools.reduce(jnp.add, [jax.lax.index_in_dim(a, i, ax, keepdims=False) for i in range(a.shape[ax])])
+        else:
+            a = jnp.sum(a, axis=ax)
+    return a
