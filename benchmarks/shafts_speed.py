@@ -62,6 +62,7 @@ def main(argv=None) -> int:
     parser.add_argument("--error-size", default="360x240", help="image size of the equal-error study (WxH)")
     args = parser.parse_args(argv)
 
+    load = os.getloadavg()[0]
     scene = load_shafts_scene(ROOT / "examples" / "scenes" / "spot_sphere.json")
     if args.quick:
         scene = scene.with_size(240, 160)
@@ -152,8 +153,9 @@ def main(argv=None) -> int:
     print(text)
     if not args.quick and not args.no_results:
         machine = f"{platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} ({jax.default_backend()}), float32"
-        write_results(f"{SECTION}\n\nCommand: `python benchmarks/shafts_speed.py` ({machine}; other jobs were running "
-                      f"on the machine, so times are upper bounds).\n\n{text}\n")
+        write_results(f"{SECTION}\n\nCommand: `python benchmarks/shafts_speed.py` ({machine}; load average "
+                      f"{load:.1f} at the start: other jobs on the 2 cores inflate the times). Reading and history "
+                      f"in the next section.\n\n{text}\n")
     return 0
 
 
