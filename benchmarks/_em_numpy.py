@@ -174,20 +174,33 @@ def em_texels_numpy(children: dict, *, order=DEFAULT_ORDER, iterations=DEFAULT_I
         wr, mr, vr, ir, _ = em_fit_numpy(x[run], w[run], weights[run], means[run], variances[run],
                                          iterations=iterations, tol=tol)
         weights[run], means[run], variances[run], iters[run] = wr, mr, vr, ir
-    error_two = _relative_ise(p, (weights, means, variances))
+    # The EM mixture's error, responsibilities and minor lobe only where they are used (the JAX
+    # kernel skips them per block of texels where no texel needs them).
+    error_two = error_one.copy()
+    error_two[run] = _relative_ise(tuple(a[run] for a in p), (weights[run], means[run], variances[run]))
     two = run & (error_two < TWO_LOBE_GAIN * error_one)
-    resp, _ = _e_step(x, w / np.maximum(np.sum(w, 2, keepdims=True), _TINY), weights, means, variances)
-    resp = np.repeat(resp, n_nodes, axis=1)                                                 # N S K
     k0 = np.argmax(weights, axis=1)
     k1 = 1 - k0
-    # Two conversions, as the JAX kernel: lobe 0 (major where two lobes, else the single summary), minor.
-    t2 = two[:, None]
-    first_resp = np.where(t2, resp[idx, :, k0], 1.0)
-    first_mean = np.where(t2, means[idx, k0], one_mean)
-    first_mass = np.where(two, weights[idx, k0], 1.0)
+    # Lobe 0 (the major component where two lobes are kept, else the single summary), then the
+    # minor component's lobe where two are kept.
+    first_resp = np.ones(ws.shape, dtype)
+    first_mean = one_mean.copy()
+    first_mass = np.ones(n_tex, dtype)
+    if two.any():
+        resp, _ = _e_step(x[two], w[two] / np.maximum(np.sum(w[two], 2, keepdims=True), _TINY), weights[two],
+                          means[two], variances[two])
+        resp = np.repeat(resp, n_nodes, axis=1)                                             # T S K
+        it = np.arange(int(two.sum()))
+        first_resp[two] = resp[it, :, k0[two]]
+        first_mean[two] = means[two, k0[two]]
+        first_mass[two] = weights[two, k0[two]]
     lobe0 = _component_lobes(hs, ws, es, first_resp, first_mean, first_mass)
-    minor = _component_lobes(hs, ws, es, resp[idx, :, k1], means[idx, k1], weights[idx, k1])
-    lobe1 = tuple(np.where(two.reshape((-1,) + (1,) * (u.ndim - 1)), u, v) for u, v in zip(minor, lobe0))
+    lobe1 = tuple(u.copy() for u in lobe0)
+    if two.any():
+        minor = _component_lobes(hs[two], ws[two], es[two], resp[it, :, k1[two]], means[two, k1[two]],
+                                 weights[two, k1[two]])
+        for u, m in zip(lobe1, minor):
+            u[two] = m
     weight = np.where(two, weights[idx, k1], 0).astype(dtype)
     names = ("rho_s", "normal", "sigma_x", "sigma_y")
     return {"rho_d": np.mean(children["rho_d"], axis=1), "lobe0": dict(zip(names, lobe0)),

@@ -122,8 +122,8 @@ class EMInfo(eqx.Module):
     converged: Bool[Array, "..."]
     two_lobes: Bool[Array, "..."]
     error_one: Float[Array, "..."]   # relative ISE of the one-lobe summary
-    error_two: Float[Array, "..."]   # relative ISE of the EM mixture
-    log_likelihood: Float[Array, "..."]
+    error_two: Float[Array, "..."]   # relative ISE of the EM mixture (= error_one where EM did not run)
+    log_likelihood: Float[Array, "..."]  # of the EM mixture (0 where EM did not run)
 
 
 # --------------------------------------------------------------------------------------------
@@ -443,10 +443,19 @@ def _texels_kernel(children: BTFTexel, order: int, iterations: int, tol: float |
     init = (jnp.full((2, n_tex), 0.5, dtype),) + tuple(jnp.stack([at1(a), at2(a)]) for a in (mu0, mu1, var0, var1))
     # EM only where one lobe is not enough (the others stop at once).
     run = error_one > ONE_LOBE_TOLERANCE
-    params, loglik, count, converged, resp = _em_core(x0, x1, w, init, iterations=iterations, tol=tol,
-                                                      var_floor=VAR_FLOOR, virtual=VIRTUAL, run=run)
+    def fit(_):
+        params, loglik, count, converged, resp = _em_core(x0, x1, w, init, iterations=iterations, tol=tol,
+                                                          var_floor=VAR_FLOOR, virtual=VIRTUAL, run=run)
+        return params, loglik, count, converged, resp, _relative_ise(p, params)
+
+    def no_fit(_):  # no texel of the block needs EM (as the numpy peer, which fits only that subset)
+        zero = jnp.zeros_like(total)
+        return (tuple(init), zero, jnp.zeros((n_tex,), jnp.int32), jnp.ones((n_tex,), bool),
+                jnp.zeros((mass.shape[0], 2, n_tex), dtype), error_one)
+
+    params, loglik, count, converged, resp, error_two = jax.lax.cond(jnp.any(run), fit, no_fit, None)
+    error_two, loglik = jnp.where(run, error_two, error_one), jnp.where(run, loglik, 0.0)
     pi, m0, m1, v0, v1 = params
-    error_two = _relative_ise(p, params)
     two = run & (error_two < TWO_LOBE_GAIN * error_one)
     # Lobe 0 = the heavier component. Two conversions in one batch of 2N problems: lobe 0 (the
     # major component where two lobes are kept, else the single summary) and the minor component.
