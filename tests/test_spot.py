@@ -110,3 +110,22 @@ def test_no_nan_gradient_on_axis_edge_and_at_the_light():
     pts = jnp.stack([pos + 2.0 * axis, pos + 2.0 * edge_dir, pos, pos - axis])
     gp, gx = jax.jit(jax.grad(loss, argnums=(0, 1)))(pos, pts)
     assert np.all(np.isfinite(np.asarray(gp))) and np.all(np.isfinite(np.asarray(gx)))
+
+
+ATAN_TOL = 2e-7  # Cephes atanf's polynomial: |error| < 2e-7 rad over x >= 0
+
+
+@pytest.mark.parametrize("jit", [False, True])
+def test_atan_nonneg_value_and_derivative_match_numpy(jit):
+    """The polynomial arctan against numpy's, and its (custom) derivative against central
+    differences of numpy's arctan, over the range-reduction intervals and far out."""
+    from jaxrender.lights._spot import atan_nonneg
+
+    x = np.concatenate([np.linspace(0.0, 3.0, 301), np.geomspace(3.0, 1e4, 50)])
+    f = jax.jit(atan_nonneg) if jit else atan_nonneg
+    np.testing.assert_allclose(np.asarray(f(jnp.asarray(x))), np.arctan(x), atol=ATAN_TOL)
+    grad = jax.vmap(jax.grad(atan_nonneg))
+    grad = jax.jit(grad) if jit else grad
+    h = 1e-6
+    fd = (np.arctan(x + h) - np.arctan(np.maximum(x - h, 0.0))) / (x + h - np.maximum(x - h, 0.0))
+    np.testing.assert_allclose(np.asarray(grad(jnp.asarray(x))), fd, rtol=1e-6, atol=1e-9)

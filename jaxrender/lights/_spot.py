@@ -38,10 +38,13 @@ def _dot(a: Array, b: Array) -> Array:
     return a[..., 0] * b[0] + a[..., 1] * b[1] + a[..., 2] * b[2]
 
 
+@jax.custom_jvp
 def atan_nonneg(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     """arctan(x) for x >= 0 as vectorizable polynomial arithmetic (Cephes `atanf`: range reduction
     to |x| <= tan(pi/8) and a degree-9 odd polynomial; |error| < 2e-7). XLA's CPU arctan2 is a
-    scalar libm call per element (~50 ns), this is a few fused flops; its derivative is smooth."""
+    scalar libm call per element (~50 ns), this is a few fused flops. Its derivative is arctan's,
+    1 / (1 + x^2) (a custom JVP: differentiating the range reduction and the polynomial cost ~1.3x
+    a light-shaft frame in reverse mode; the two derivatives differ by ~1e-6)."""
     x = jnp.asarray(x)
     big = x > 2.414213562373095
     mid = (x > 0.41421356237309503) & ~big
@@ -51,6 +54,13 @@ def atan_nonneg(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     z = xr * xr
     poly = (((8.05374449538e-2 * z - 1.38776856032e-1) * z + 1.99777106478e-1) * z - 3.33329491539e-1) * z
     return (y0 + (xr + xr * poly)).astype(x.dtype)
+
+
+@atan_nonneg.defjvp
+def _atan_nonneg_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    x = jnp.asarray(x)
+    return atan_nonneg(x), dx / (1.0 + x * x)
 
 
 def cone_angle(local: Float[ArrayLike, "*B 3"]) -> Float[Array, "*B"]:
