@@ -118,6 +118,23 @@ def _band_max(height: Array, ex: float, ey: float, n_bands: int) -> list[Array]:
 
 def horizon_map(height: Float[ArrayLike, "H W"], *, directions: int = 8, texel_size: float = 1.0,
                 near: int = 31, capacity: int | None = None) -> Float[Array, "D H W"]:
+    """Horizon slopes (see `_horizon_map`), jitted with the keywords static.
+
+    On the CPU backend the kernel is compiled preferring 512-bit vectors: the dense search is
+    bound by vector arithmetic, and on a CPU with AVX-512 this made the 256x256 x 8 map ~15 %
+    faster (0.0077 -> 0.0065 s on the project's 2-core Xeon, identical values); elsewhere the
+    preference changes nothing. Traced inside another transformation (`jax.jit`, `vmap`, ...)
+    it is inlined there, under the outer compilation's options.
+    """
+    kwargs = dict(directions=directions, texel_size=texel_size, near=near, capacity=capacity)
+    if isinstance(height, jax.core.Tracer):
+        return _horizon_map(height, **kwargs)
+    compiled = _horizon_jit_cpu if jax.default_backend() == "cpu" else _horizon_jit
+    return compiled(height, **kwargs)
+
+
+def _horizon_map(height: Float[ArrayLike, "H W"], *, directions: int = 8, texel_size: float = 1.0,
+                 near: int = 31, capacity: int | None = None) -> Float[Array, "D H W"]:
     """Horizon slopes (tan of the horizon elevation) of a periodic heightfield in D directions.
 
     `height` is in the same length unit as `texel_size` (scale ripple heights before calling).
@@ -191,6 +208,11 @@ def horizon_map(height: Float[ArrayLike, "H W"], *, directions: int = 8, texel_s
 
         best_flat, _ = jax.lax.while_loop(lambda s: jnp.any(s[1] > 0), round_body, (best_flat, pending))
     return best_flat.reshape(directions, rows, cols)
+
+
+_STATIC = ("directions", "texel_size", "near", "capacity")
+_horizon_jit = jax.jit(_horizon_map, static_argnames=_STATIC)
+_horizon_jit_cpu = jax.jit(_horizon_map, static_argnames=_STATIC, compiler_options={"xla_cpu_prefer_vector_width": "512"})
 
 
 def horizon_shadow(horizon: Float[ArrayLike, "D ..."], light_local: Float[ArrayLike, "... 3"]) -> Bool[Array, "..."]:
