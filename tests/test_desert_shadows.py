@@ -6,8 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrender.shadows import (heightfield_light, heightfield_shadow, horizon_directions, horizon_map, horizon_shadow,
-                               triangle_height)
+from jaxrender.shadows import (heightfield_light, heightfield_shadow, horizon_band, horizon_directions, horizon_light,
+                               horizon_map, horizon_shadow, triangle_height)
 
 EXACT_TOL = 1e-12  # the fast search is exact: only float64 rounding of identical formulas differs
 AGREE_MIN = 0.99  # issue 3: the horizon shadow / incremental march agrees with a brute-force ray on >= 99 %
@@ -124,6 +124,49 @@ def test_horizon_shadow_agrees_with_bruteforce_ray():
         ref = _ray_shadow_bruteforce(h, az, el)
         assert ref.any() and (~ref).any(), "the test light must give both lit and shadowed texels"
         assert np.mean(fast == ref) >= AGREE_MIN, (az_deg, np.mean(fast == ref))
+
+
+def _ray_lit_fraction_bruteforce(h, az, el, sub=4, step=0.05):
+    """Lit fraction of each texel: `sub` x `sub` points spread over the texel, each lit unless
+    the continuous (bilinear, periodic) field rises above its ray toward the light."""
+    n = h.shape[0]
+    ts = np.arange(1, int(n / step)) * step
+    yy, xx = np.mgrid[0:n, 0:n]
+    lit = np.zeros((n, n))
+    offsets = (np.arange(sub) + 0.5) / sub - 0.5
+    for oy in offsets:
+        for ox in offsets:
+            y0, x0 = yy + oy, xx + ox
+            h0 = _bilinear_periodic_np(h, y0, x0)
+            above = _bilinear_periodic_np(h, y0[..., None] + ts * math.sin(az), x0[..., None] + ts * math.cos(az))
+            lit += ~np.any(above > h0[..., None] + ts * math.tan(el), axis=-1)
+    return lit / sub**2
+
+
+SOFT_GAIN = 0.95  # the antialiased horizon light must be closer to the sub-texel truth than the binary test
+
+
+def test_horizon_light_antialiases_toward_subtexel_rays():
+    """`horizon_light` (the horizon shadow spread over the texel's slope band) against the lit
+    fraction of 4 x 4 brute-force rays per texel: closer than the binary `horizon_shadow` at every
+    light tested (6-26 % lower mean error when measured), and equal to it with a zero band."""
+    n = 48
+    y, x = np.mgrid[0:n, 0:n] / n * 2 * np.pi
+    h = np.sin(4 * x + 0.6 * np.sin(y)) + 0.3 * np.sin(8 * x + 2 * y + 1.0)
+    h *= 0.35 / np.max(np.abs(np.roll(h, -1, 1) - np.roll(h, 1, 1)) / 2)
+    hmap = jnp.asarray(_horizon_bruteforce_np(h, 16))
+    band = horizon_band(hmap)
+    for az_deg, el_deg in [(0.0, 8.0), (160.0, 8.0), (200.0, 12.0), (20.0, 10.0)]:
+        az, el = math.radians(az_deg), math.radians(el_deg)
+        light = jnp.broadcast_to(jnp.asarray([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]),
+                                 (n, n, 3))
+        ref = _ray_lit_fraction_bruteforce(h, az, el)
+        binary = 1.0 - np.asarray(horizon_shadow(hmap, light), dtype=float)
+        soft = np.asarray(horizon_light(hmap, band, light))
+        np.testing.assert_array_equal(np.asarray(horizon_light(hmap, jnp.zeros_like(band), light)), binary)
+        assert 0.0 < np.mean((soft > 0) & (soft < 1)) < 0.5, "some texels must be partly lit"
+        err_soft, err_binary = np.mean(np.abs(soft - ref)), np.mean(np.abs(binary - ref))
+        assert err_soft < SOFT_GAIN * err_binary, (az_deg, err_soft, err_binary)
 
 
 def _tri_height(z, x, y):

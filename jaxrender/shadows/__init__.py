@@ -12,6 +12,8 @@ from ._pcss import pcss as pcss
 from ._heightfield import heightfield_light as heightfield_light
 from ._heightfield import heightfield_shadow as heightfield_shadow
 from ._heightfield import triangle_height as triangle_height
+from ._horizon import horizon_band as horizon_band
 from ._horizon import horizon_directions as horizon_directions
+from ._horizon import horizon_light as horizon_light
 from ._horizon import horizon_map as horizon_map
 from ._horizon import horizon_shadow as horizon_shadow

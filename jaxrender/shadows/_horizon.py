@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-__all__ = ["horizon_directions", "horizon_map", "horizon_shadow"]
+__all__ = ["horizon_band", "horizon_directions", "horizon_light", "horizon_map", "horizon_shadow"]
 
 
 def horizon_directions(directions: int = 8) -> list[tuple[float, float]]:
@@ -215,16 +215,10 @@ _horizon_jit = jax.jit(_horizon_map, static_argnames=_STATIC)
 _horizon_jit_cpu = jax.jit(_horizon_map, static_argnames=_STATIC, compiler_options={"xla_cpu_prefer_vector_width": "512"})
 
 
-def horizon_shadow(horizon: Float[ArrayLike, "D ..."], light_local: Float[ArrayLike, "... 3"]) -> Bool[Array, "..."]:
-    """True where the light is blocked: the light's slope lz / |(lx, ly)| is below the horizon
-    slope interpolated linearly in azimuth between the two neighbouring directions.
-
-    `horizon[d]` holds the slopes of direction d at each shading point (already looked up);
-    `light_local` is the unit light vector in the heightfield's frame (x, y along the texture
-    axes, z along the un-bumped normal)."""
-    horizon = jnp.asarray(horizon)
-    light_local = jnp.asarray(light_local)
-    n_dir = horizon.shape[0]
+def _toward_light(maps: Array, light_local: Array) -> tuple[Array, Array, Array]:
+    """`maps` (D ...) interpolated linearly in azimuth toward the light, with the light's lz and
+    horizontal length |(lx, ly)|."""
+    n_dir = maps.shape[0]
     lx, ly, lz = light_local[..., 0], light_local[..., 1], light_local[..., 2]
     phi = jnp.mod(jnp.arctan2(ly, lx), 2 * jnp.pi)
     pos = phi * (n_dir / (2 * jnp.pi))
@@ -232,9 +226,46 @@ def horizon_shadow(horizon: Float[ArrayLike, "D ..."], light_local: Float[ArrayL
     w = pos - d0
     d0i = jnp.mod(d0.astype(jnp.int32), n_dir)
     d1i = jnp.mod(d0i + 1, n_dir)
-    h0 = jnp.take_along_axis(horizon, d0i[None], axis=0)[0]
-    h1 = jnp.take_along_axis(horizon, d1i[None], axis=0)[0]
-    h = (1 - w) * h0 + w * h1
-    flat = jnp.sqrt(lx * lx + ly * ly)
+    m0 = jnp.take_along_axis(maps, d0i[None], axis=0)[0]
+    m1 = jnp.take_along_axis(maps, d1i[None], axis=0)[0]
+    return (1 - w) * m0 + w * m1, lz, jnp.sqrt(lx * lx + ly * ly)
+
+
+def horizon_shadow(horizon: Float[ArrayLike, "D ..."], light_local: Float[ArrayLike, "... 3"]) -> Bool[Array, "..."]:
+    """True where the light is blocked: the light's slope lz / |(lx, ly)| is below the horizon
+    slope interpolated linearly in azimuth between the two neighbouring directions.
+
+    `horizon[d]` holds the slopes of direction d at each shading point (already looked up);
+    `light_local` is the unit light vector in the heightfield's frame (x, y along the texture
+    axes, z along the un-bumped normal)."""
+    h, lz, flat = _toward_light(jnp.asarray(horizon), jnp.asarray(light_local))
     # light slope > horizon slope <=> lz > h * flat (no division; overhead light is never blocked)
     return ~(lz > h * flat)
+
+
+def horizon_band(horizon: Float[ArrayLike, "D H W"]) -> Float[Array, "D H W"]:
+    """How much each direction's horizon slope changes across one texel: the magnitude of its
+    gradient per texel (central differences, periodic). `horizon_light` spreads the shadow
+    edge over this band of slopes."""
+    horizon = jnp.asarray(horizon)
+    dx = 0.5 * (jnp.roll(horizon, -1, axis=-1) - jnp.roll(horizon, 1, axis=-1))
+    dy = 0.5 * (jnp.roll(horizon, -1, axis=-2) - jnp.roll(horizon, 1, axis=-2))
+    return jnp.sqrt(dx * dx + dy * dy)
+
+
+def horizon_light(horizon: Float[ArrayLike, "D ..."], band: Float[ArrayLike, "D ..."],
+                  light_local: Float[ArrayLike, "... 3"]) -> Float[Array, "..."]:
+    """Lit fraction of each shading texel, the antialiased `horizon_shadow`: the horizon slope h
+    varies across the texel by about `band` (`horizon_band`, looked up like `horizon`), so the
+    part of the texel whose horizon lies below the light's slope s is
+    clip(1/2 + (s - h) / band, 0, 1); with band 0 it is the binary test. Against the lit fraction
+    of 4x4 brute-force rays per texel its mean error is 6-26 % below the binary test's
+    (tests/test_desert_shadows.py), and it softens the speckle of single shadowed texels in the
+    ripple troughs at grazing sun."""
+    h, lz, flat = _toward_light(jnp.asarray(horizon), jnp.asarray(light_local))
+    b, _, _ = _toward_light(jnp.asarray(band), jnp.asarray(light_local))
+    # (s - h) / band with s = lz / flat, written without dividing by flat (overhead light: lit)
+    margin = lz - h * flat
+    width = b * flat
+    soft = jnp.clip(0.5 + margin / jnp.where(width > 0, width, 1.0), 0.0, 1.0)
+    return jnp.where(width > 0, soft, (margin > 0).astype(margin.dtype))

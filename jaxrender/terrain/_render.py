@@ -29,7 +29,7 @@ from .._math import normalize
 from ..camera import Camera
 from ..lights._sun import Sun
 from ..shadows._heightfield import heightfield_light, triangle_height
-from ..shadows._horizon import horizon_map, horizon_shadow
+from ..shadows._horizon import horizon_band, horizon_light, horizon_map
 from ..textures import bilinear, downsample2
 from ._dune import close_periodic, ray_cast_coherent, vertex_normals
 from ._grain import sand_grain_texture
@@ -42,13 +42,15 @@ __all__ = ["TerrainMaps", "build_terrain_maps", "plan_quads", "quad_capacities",
 
 class TerrainMaps(eqx.Module):
     """Everything precomputed per scene: dune vertices and normals, and per ripple level the
-    normal map, grain albedo and horizon map (level l has R / 2^l texels across)."""
+    normal map, grain albedo, horizon map and its per-texel slope band (level l has R / 2^l
+    texels across)."""
 
     z: Float[Array, "Ny Nx"]
     normals: Float[Array, "Ny Nx 3"]
     ripple_normals: tuple[Float[Array, "r r 3"], ...]
     grain: tuple[Float[Array, "r r 1"], ...]
     horizon: tuple[Float[Array, "r r D"], ...]
+    horizon_band: tuple[Float[Array, "r r D"], ...]
     spacing: float = eqx.field(static=True)
     texels: int = eqx.field(static=True)
 
@@ -82,7 +84,8 @@ def build_terrain_maps(dune_z: Float[ArrayLike, "N M"], ripple_z: Float[ArrayLik
     for _ in range(levels - 1):
         grain.append(downsample2(grain[-1]))
         hor.append(downsample2(hor[-1]))
-    return TerrainMaps(z, vertex_normals(z, spacing=spacing), normals, tuple(grain), tuple(hor), spacing, texels)
+    band = tuple(jnp.moveaxis(horizon_band(jnp.moveaxis(h, -1, 0)), 0, -1) for h in hor)
+    return TerrainMaps(z, vertex_normals(z, spacing=spacing), normals, tuple(grain), tuple(hor), band, spacing, texels)
 
 
 def shadow_steps(maps: TerrainMaps, sun_elevation_deg: float) -> int:
@@ -125,11 +128,11 @@ class _Flags(eqx.Module):
     shadow_steps: int = eqx.field(static=True)
 
 
-def _shade_points(maps: TerrainMaps, xy: Array, ripple_n: Array, grain: Array, hor: Array, sun: Sun,
+def _shade_points(maps: TerrainMaps, xy: Array, ripple_n: Array, grain: Array, hor: Array, band: Array, sun: Sun,
                   albedo: Array, sky: Array, flags: _Flags, texel: float) -> Array:
-    """Radiance of dune points at world `xy` (... x 2) given their ripple normal, grain and
-    horizon slopes (looked up at the point's level); `texel` is the shading texel's world size
-    (the dune shadow's edge is antialiased over it)."""
+    """Radiance of dune points at world `xy` (... x 2) given their ripple normal, grain,
+    horizon slopes and slope bands (looked up at the point's level); `texel` is the shading
+    texel's world size. Both shadow edges are antialiased over the shading texel."""
     dtype = xy.dtype
     ny, nx = maps.z.shape
     zd = triangle_height(maps.z, xy, spacing=maps.spacing)
@@ -153,7 +156,7 @@ def _shade_points(maps: TerrainMaps, xy: Array, ripple_n: Array, grain: Array, h
                                 bias=1e-3 * maps.spacing, footprint=texel)
     if flags.ripple_shadows and flags.ripples:
         local = jnp.stack([jnp.sum(lb * t, -1), jnp.sum(lb * b, -1), jnp.sum(lb * nd, -1)], axis=-1)
-        lit = jnp.where(horizon_shadow(jnp.moveaxis(hor, -1, 0), local), 0.0, lit)
+        lit = lit * horizon_light(jnp.moveaxis(hor, -1, 0), jnp.moveaxis(band, -1, 0), local)
     rgb = (1,) * (xy.ndim - 1) + (3,)
     direct = (cos * lit)[..., None] * jnp.reshape(sun.irradiance.astype(dtype), rgb)
     ambient = (0.5 + 0.5 * n[..., 2])[..., None] * jnp.reshape(sky.astype(dtype), rgb)
@@ -177,7 +180,8 @@ def _shade_level(maps: TerrainMaps, ids: Array, l: int, sun: Sun, albedo: Array,
         row = jnp.mod(qj * n + a, r)
         col = jnp.mod(qi * n + bb, r)
         return _shade_points(maps, xy, maps.ripple_normals[l][row, col], maps.grain[l][row, col],
-                             maps.horizon[l][row, col], sun, albedo, sky, flags, maps.spacing / n)
+                             maps.horizon[l][row, col], maps.horizon_band[l][row, col], sun, albedo, sky, flags,
+                             maps.spacing / n)
 
     return jax.lax.map(one, ids, batch_size=max(1, min(batch, ids.shape[0])))
 
