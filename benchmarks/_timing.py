@@ -1,4 +1,4 @@
-"""The one timing helper of the desert benchmarks: compile (first call) apart from run time."""
+"""The timing helper of the desert and shafts_speed benchmarks: compile (first call) apart from run time."""
 
 from __future__ import annotations
 

@@ -18,9 +18,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import equinox as eqx
@@ -31,24 +29,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _timing import timed  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 from jaxrender.scenes import load_shafts_scene  # noqa: E402
 from jaxrender.shafts import render_planes, render_raymarch  # noqa: E402
 
 TARGET_ERR = 0.02
 SECTION = "### vs. ray march and per-frame time"
-
-
-def timed(fn, *args, repeats=5):
-    """(compile_s, median_s): first call (trace + compile + run) timed apart from the repeats."""
-    start = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    compile_s = time.perf_counter() - start
-    runs = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        runs.append(time.perf_counter() - start)
-    return compile_s, statistics.median(runs)
 
 
 def rel_rms(x, ref):
@@ -72,10 +58,10 @@ def main(argv=None) -> int:
 
     # 1. frame time
     planes_f = jax.jit(lambda s: render_planes(s, planes=30, subplanes=6))
-    c_f, t_f = timed(planes_f, scene, repeats=repeats)
+    c_f, t_f = timed(lambda: planes_f(scene), repeats)
     rows.append((f"planes 30x6 float, {W}x{H}", c_f, t_f, "<= 0.17 s/frame", "met" if t_f <= 0.17 else "MISSED"))
     planes_q = jax.jit(lambda s: render_planes(s, planes=30, subplanes=6, quantize_bits=8))
-    c_q, t_q = timed(planes_q, scene, repeats=repeats)
+    c_q, t_q = timed(lambda: planes_q(scene), repeats)
     rows.append((f"planes 30x6 8-bit, {W}x{H}", c_q, t_q, "<= 0.17 s/frame", "met" if t_q <= 0.17 else "MISSED"))
     print(f"frame: float {t_f:.3f} s (compile {c_f:.1f} s), 8-bit {t_q:.3f} s", flush=True)
 
@@ -92,8 +78,8 @@ def main(argv=None) -> int:
     loss = lambda p: jnp.sum(weights * render_planes(with_params(p), planes=30, subplanes=6))  # noqa: E731
     fwd = jax.jit(loss)
     grad = jax.jit(jax.value_and_grad(loss))
-    _, t_loss = timed(fwd, params, repeats=repeats)
-    c_g, t_g = timed(grad, params, repeats=repeats)
+    _, t_loss = timed(lambda: fwd(params), repeats)
+    c_g, t_g = timed(lambda: grad(params), repeats)
     ratio_g = t_g / t_loss
     rows.append(("value_and_grad (rho, kappa, K, I, pos)", c_g, t_g, "<= 4x forward",
                  f"{ratio_g:.2f}x forward: " + ("met" if ratio_g <= 4 else "MISSED")))
@@ -110,7 +96,7 @@ def main(argv=None) -> int:
     for samples in (4, 8, 12, 16, 24, 32, 48, 64, 96, 128):
         # returns (image, scattering): the whole frame is computed and timed
         fn = jax.jit(lambda s, n=samples: (lambda out: (out[0], out[1][1]))(render_raymarch(s, samples=n, return_parts=True)))
-        _, t = timed(fn, small, repeats=3)
+        _, t = timed(lambda: fn(small), 3)
         err = rel_rms(fn(small)[1], ref)
         march.append((samples, err, t))
         print(f"  ray march {samples:4d} samples: err {err:.4f} time {t:.4f}", flush=True)
@@ -121,7 +107,7 @@ def main(argv=None) -> int:
         for n, m in ((4, 2), (6, 2), (8, 2), (8, 4), (12, 3), (16, 4), (24, 6), (30, 6), (48, 8)):
             fn = jax.jit(lambda s, n=n, m=m, g_pp=g_pp: (lambda out: (out[0], sum(out[1][1])))(
                 render_planes(s, planes=n, subplanes=m, g_per_pixel=g_pp, tables=not g_pp, return_parts=True)))
-            _, t = timed(fn, small, repeats=3)
+            _, t = timed(lambda: fn(small), 3)
             err = rel_rms(fn(small)[1], ref)
             label = f"{n}x{m}" + (", g per pixel" if g_pp else ", mesh 15x10 + tables")
             plane_runs.append((label, err, t))

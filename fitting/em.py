@@ -392,17 +392,15 @@ def _texels_kernel(children: BTFTexel, order: int, iterations: int, tol: float |
     if tol is None:
         tol = 1e-5 if dtype == jnp.float32 else 1e-10
     if one_lobe_children:
-        children = eqx.tree_at(lambda c: c.lobe1, children, children.lobe0)
         lobes = children.lobe0                                                                           # N 4 ...
-        child_weight = jnp.zeros_like(children.weight)
+        child_mass = jnp.ones_like(children.weight)
     else:
         lobes = jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=1), children.lobe0, children.lobe1)   # N 8 ...
-        child_weight = children.weight
+        child_mass = jnp.concatenate([1 - children.weight, children.weight], axis=1)
     comps = lambda a: tuple(jnp.transpose(a[..., i]) for i in range(3))  # noqa: E731  N 8 3 -> 3 x (8 N)
     normal, rho_s = comps(lobes.normal), comps(lobes.rho_s)
     sigma_x, sigma_y = jnp.transpose(lobes.sigma_x), jnp.transpose(lobes.sigma_y)
-    mass_l = 0.25 * jnp.transpose(1 - child_weight if one_lobe_children
-                                  else jnp.concatenate([1 - child_weight, child_weight], axis=1))       # 8 (or 4) N
+    mass_l = 0.25 * jnp.transpose(child_mass)                                                          # 8 (or 4) N
     h, x0, x1, q = _lobe_nodes(normal, sigma_x, sigma_y, order)                                          # 8 Q N
     area = mass_l * jnp.pi * jnp.maximum(sigma_x, SIGMA_FLOOR) * jnp.maximum(sigma_y, SIGMA_FLOOR)       # 8 N
     qq = q[None, :, None]
@@ -583,7 +581,8 @@ def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: in
     loop runs over chunks, never over texels, and dispatches them asynchronously. Inside a chunk,
     blocks of 256 texels run their EM loops one after another (`_em_batch`), each until its own
     slowest texel has converged. Splitting into chunks and merging them are one jitted call each
-    and stay on the device (no host round trip per level).
+    and stay on the device; the one value read back per level is whether any child has a second
+    lobe (it picks the cheaper kernel for one-lobe levels).
     """
     level = jax.tree.map(jnp.asarray, level)
     h, w = level.weight.shape

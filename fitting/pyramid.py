@@ -44,7 +44,7 @@ def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = 
         infos.append(info)
         if progress is not None:
             progress(1)
-    # statistics once every level is dispatched (no host round trip between levels)
+    # statistics once every level is dispatched (each level reads back only `em_downsample`'s one-lobe check)
     stats = [{"size": list(level.weight.shape),
               "two_lobe_fraction": float(np.mean(np.asarray(info.two_lobes))),
               "max_iterations": int(np.max(np.asarray(info.iterations))),

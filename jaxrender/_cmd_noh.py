@@ -6,9 +6,9 @@ import argparse
 import shutil
 from pathlib import Path
 
-from ._cli import add_time_argument, print_timing
-
 import numpy as np
+
+from ._cli import add_time_argument, print_timing
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

@@ -140,8 +140,6 @@ def specular_factor(d: Float[ArrayLike, "..."], cos_i: Float[ArrayLike, "..."], 
 def lobe_reflectance(lobe: Lobe, wi: Float[ArrayLike, "... 3"], wo: Float[ArrayLike, "... 3"], *,
                      model: str = "reciprocal") -> Float[Array, "... 3"]:
     """The specular part of R for one lobe: rho_s D / cos_r (reciprocal) or / (cos_i cos_r) (paper)."""
-    if model not in MODELS:
-        raise ValueError(f"unknown model {model!r}: use one of {MODELS}")
     n = normalize(lobe.normal)
     d = slope_distribution(half_vector(wi, wo), lobe)
     return specular_factor(d, dot(wi, n), dot(wo, n), model=model)[..., None] * lobe.rho_s

@@ -12,7 +12,6 @@ along the light path. All functions are gradient-safe (guarded divisions and squ
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
