@@ -317,13 +317,16 @@ def _hermite_grid(order: int, dtype) -> tuple[Array, Array, Array]:
 def _lobe_nodes(normal, sigma_x, sigma_y, order):
     """Nodes of lobes `L N` (normal a 3-tuple): half vectors (3-tuple of `L Q N`), slopes x0, x1, weights q `Q`."""
     a, b, q = _hermite_grid(order, sigma_x.dtype)
-    t, bt, n = _tangent_frame3(*normal)
+    # The barriers materialize the per-lobe frames and the nodes once: left to itself XLA fuses
+    # the frame into every consumer of every node (recomputing it 9 times per lobe, per consumer).
+    t, bt, n = jax.lax.optimization_barrier(_tangent_frame3(*normal))
     sx = jnp.maximum(sigma_x, SIGMA_FLOOR)[:, None, :]
     sy = jnp.maximum(sigma_y, SIGMA_FLOOR)[:, None, :]
     aa, bb = a[None, :, None], b[None, :, None]
     h = _normalize3(*(aa * sx * tc[:, None, :] + bb * sy * bc[:, None, :] + nc[:, None, :] for tc, bc, nc in zip(t, bt, n)))
     inv = 1 / jnp.maximum(h[2], _HZ_FLOOR)
-    return h, h[0] * inv, h[1] * inv, q
+    h, x0, x1 = jax.lax.optimization_barrier((h, h[0] * inv, h[1] * inv))
+    return h, x0, x1, q
 
 
 def lobe_slope_nodes(lobe: Lobe, *, order: int = DEFAULT_ORDER) -> tuple[Float[Array, "Q 3"], Float[Array, "Q 2"], Float[Array, " Q"]]:
@@ -380,17 +383,12 @@ def _component_lobes(h, w, e, resp, m0, m1, mass):
     return rho_s, normal, sx, sy
 
 
-def _texels_kernel(children: BTFTexel, order: int, iterations: int, tol: float | None, max_lobes: int,
-                   one_lobe_children: bool = False):
-    """Coarse texels from children with leading axes `N 4` -> (BTFTexel N, EMInfo N).
-
-    `one_lobe_children`: every child has weight 0 (level 0 of a fit), so only lobe 0 of each
-    child carries mass; its lobe 1 would add exact zeros to every sum and is left out (half the
-    nodes; the same texels up to the order of the sums).
-    """
-    dtype = children.weight.dtype
-    if tol is None:
-        tol = 1e-5 if dtype == jnp.float32 else 1e-10
+def _child_lobes_soa(children: BTFTexel, one_lobe_children: bool):
+    """Children `N 4 ...` -> their lobes in structure-of-arrays layout, texel axis last:
+    (normal 3-tuple, rho_s 3-tuple, sigma_x, sigma_y, mass), each `L N` with L = 8 child lobes
+    (4 with `one_lobe_children`: every child has weight 0, e.g. level 0 of a fit, so its lobe 1
+    would add exact zeros to every sum and is left out: half the nodes, the same texels up to
+    the order of the sums)."""
     if one_lobe_children:
         lobes = children.lobe0                                                                           # N 4 ...
         child_mass = jnp.ones_like(children.weight)
@@ -398,9 +396,27 @@ def _texels_kernel(children: BTFTexel, order: int, iterations: int, tol: float |
         lobes = jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=1), children.lobe0, children.lobe1)   # N 8 ...
         child_mass = jnp.concatenate([1 - children.weight, children.weight], axis=1)
     comps = lambda a: tuple(jnp.transpose(a[..., i]) for i in range(3))  # noqa: E731  N 8 3 -> 3 x (8 N)
-    normal, rho_s = comps(lobes.normal), comps(lobes.rho_s)
-    sigma_x, sigma_y = jnp.transpose(lobes.sigma_x), jnp.transpose(lobes.sigma_y)
-    mass_l = 0.25 * jnp.transpose(child_mass)                                                          # 8 (or 4) N
+    return (comps(lobes.normal), comps(lobes.rho_s), jnp.transpose(lobes.sigma_x), jnp.transpose(lobes.sigma_y),
+            jnp.transpose(child_mass))
+
+
+def _no_em(init, groups):
+    """`_em_core`'s outputs where no texel runs EM: the initial parameters, nothing iterated."""
+    n = init[0].shape[-1]
+    dtype = init[0].dtype
+    return (tuple(init), jnp.zeros((n,), dtype), jnp.zeros((n,), jnp.int32), jnp.ones((n,), bool),
+            jnp.zeros((groups, 2, n), dtype))
+
+
+def _texels_kernel(lobes_soa, rho_d: Float[Array, "N 3"], order: int, iterations: int, tol: float | None,
+                   max_lobes: int):
+    """Coarse texels from their children's lobes (`_child_lobes_soa`) and mean `rho_d` ->
+    (BTFTexel N, EMInfo N)."""
+    normal, rho_s, sigma_x, sigma_y, child_mass = lobes_soa
+    dtype = sigma_x.dtype
+    if tol is None:
+        tol = 1e-5 if dtype == jnp.float32 else 1e-10
+    mass_l = 0.25 * child_mass                                                                         # 8 (or 4) N
     h, x0, x1, q = _lobe_nodes(normal, sigma_x, sigma_y, order)                                          # 8 Q N
     area = mass_l * jnp.pi * jnp.maximum(sigma_x, SIGMA_FLOOR) * jnp.maximum(sigma_y, SIGMA_FLOOR)       # 8 N
     qq = q[None, :, None]
@@ -430,7 +446,7 @@ def _texels_kernel(children: BTFTexel, order: int, iterations: int, tol: float |
         zero = jnp.zeros_like(total)
         info = EMInfo(jnp.zeros((n_tex,), jnp.int32), jnp.ones((n_tex,), bool), jnp.zeros((n_tex,), bool),
                       error_one, zero, zero)
-        return BTFTexel(jnp.mean(children.rho_d, axis=1), lobe, lobe, zero), info
+        return BTFTexel(rho_d, lobe, lobe, zero), info
     # Initialization: heaviest child lobe, then the farthest (energy x squared normalized distance).
     index = jnp.arange(mass.shape[0])[:, None]
     hot1 = (index == jnp.argmax(mass, axis=0)[None]).astype(dtype)
@@ -441,17 +457,27 @@ def _texels_kernel(children: BTFTexel, order: int, iterations: int, tol: float |
     init = (jnp.full((2, n_tex), 0.5, dtype),) + tuple(jnp.stack([at1(a), at2(a)]) for a in (mu0, mu1, var0, var1))
     # EM only where one lobe is not enough (the others stop at once).
     run = error_one > ONE_LOBE_TOLERANCE
-    def fit(_):
-        params, loglik, count, converged, resp = _em_core(x0, x1, w, init, iterations=iterations, tol=tol,
-                                                          var_floor=VAR_FLOOR, virtual=VIRTUAL, run=run)
-        return params, loglik, count, converged, resp, _relative_ise(p, params)
+    em = functools.partial(_em_core, iterations=iterations, tol=tol, var_floor=VAR_FLOOR, virtual=VIRTUAL)
 
-    def no_fit(_):  # no texel of the block needs EM (as the numpy peer, which fits only that subset)
-        zero = jnp.zeros_like(total)
-        return (tuple(init), zero, jnp.zeros((n_tex,), jnp.int32), jnp.ones((n_tex,), bool),
-                jnp.zeros((mass.shape[0], 2, n_tex), dtype), error_one)
+    def fit():
+        if n_tex <= _EM_BLOCK or n_tex % _EM_BLOCK:
+            return em(x0, x1, w, init, run=run)
+        # The EM loop in blocks of _EM_BLOCK texels one after the other: each block iterates only
+        # as long as its own slowest texel, and not at all where none of its texels needs EM.
+        blocks = n_tex // _EM_BLOCK
+        cut = lambda a: jnp.moveaxis(a.reshape(a.shape[:-1] + (blocks, _EM_BLOCK)), -2, 0)  # noqa: E731
+        out = jax.lax.map(lambda b: jax.lax.cond(jnp.any(b[-1]), lambda: em(*b[:-1], run=b[-1]),
+                                                 lambda: _no_em(b[3], b[2].shape[0])),
+                          jax.tree.map(cut, (x0, x1, w, init, run)))
+        return jax.tree.map(lambda a: jnp.moveaxis(a, 0, -2).reshape(a.shape[1:-1] + (n_tex,)), out)
 
-    params, loglik, count, converged, resp, error_two = jax.lax.cond(jnp.any(run), fit, no_fit, None)
+    def fit_and_error():
+        out = fit()
+        return out + (_relative_ise(p, out[0]),)
+
+    # (no texel of the block needs EM: skipped, as the numpy peer fits only that subset)
+    params, loglik, count, converged, resp, error_two = jax.lax.cond(
+        jnp.any(run), fit_and_error, lambda: _no_em(init, w.shape[0]) + (error_one,))
     error_two, loglik = jnp.where(run, error_two, error_one), jnp.where(run, loglik, 0.0)
     pi, m0, m1, v0, v1 = params
     two = run & (error_two < TWO_LOBE_GAIN * error_one)
@@ -474,20 +500,20 @@ def _texels_kernel(children: BTFTexel, order: int, iterations: int, tol: float |
     lobe1 = jax.tree.map(lambda u, v: jnp.where(two.reshape(two.shape + (1,) * (u.ndim - 1)), u, v), minor_lobe, lobe0)
     weight = jnp.where(two, minor(pi), 0.0)
     info = EMInfo(count, converged, two, error_one, error_two, loglik)
-    return BTFTexel(jnp.mean(children.rho_d, axis=1), lobe0, lobe1, weight), info
+    return BTFTexel(rho_d, lobe0, lobe1, weight), info
 
 
 def em_texel(children: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: int = DEFAULT_ITERATIONS,
              tol: float | None = None) -> tuple[BTFTexel, EMInfo]:
     """One coarse texel from its 4 children (fields with a leading axis of 4): EM 1-or-2 lobes."""
-    texel, info = _texels_kernel(jax.tree.map(lambda a: a[None], children), order, iterations, tol, 2)
+    texel, info = _em_batch(jax.tree.map(lambda a: a[None], children), order, iterations, tol, 2)
     return jax.tree.map(lambda a: a[0], (texel, info))
 
 
 def moment_matched_texel(children: BTFTexel, *, order: int = DEFAULT_ORDER) -> BTFTexel:
     """The one-lobe LEAN/Toksvig-style summary: energy-weighted slope mean and second moments of
     the children's lobes in one lobe (the baseline the two-lobe EM must beat)."""
-    texel, _ = _texels_kernel(jax.tree.map(lambda a: a[None], children), order, 0, None, 1)
+    texel, _ = _em_batch(jax.tree.map(lambda a: a[None], children), order, 0, None, 1)
     return jax.tree.map(lambda a: a[0], texel)
 
 
@@ -515,20 +541,27 @@ def gather_children(level: BTFTexel) -> BTFTexel:
     return jax.tree.map(one, level)
 
 
-_BLOCK = 256  # texels per block of a batch: the EM loop of a block stops when ITS texels converge
+_BLOCK = 2048    # texels per block of a batch (the passes outside the EM loop)
+_EM_BLOCK = 256  # texels per block of the EM loop, which stops when ITS texels converge
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
 def _em_batch(children: BTFTexel, order: int, iterations: int, tol: float | None, max_lobes: int = 2,
               one_lobe_children: bool = False):
     n = children.weight.shape[0]
+    lobes = _child_lobes_soa(children, one_lobe_children)
+    rho_d = jnp.mean(children.rho_d, axis=1)
     if n <= _BLOCK or n % _BLOCK:
-        return _texels_kernel(children, order, iterations, tol, max_lobes, one_lobe_children)
-    # Blocks of _BLOCK texels one after the other (lax.map): the EM while-loop of each block runs
-    # only as many iterations as its slowest texel (and none where no texel needs EM) instead of
-    # the whole batch's slowest; every texel's result is the same as in one batch.
-    blocks = jax.tree.map(lambda a: a.reshape((n // _BLOCK, _BLOCK) + a.shape[1:]), children)
-    out = jax.lax.map(lambda c: _texels_kernel(c, order, iterations, tol, max_lobes, one_lobe_children), blocks)
+        return _texels_kernel(lobes, rho_d, order, iterations, tol, max_lobes)
+    # Blocks of _BLOCK texels one after the other (lax.map), small enough to stay in cache; inside
+    # a block the EM loop runs in smaller blocks still (`_texels_kernel`). Every texel's result
+    # is the same as in one batch. The blocks are cut from the structure-of-arrays layout (block
+    # axis first, texels last), so that a block's arrays are contiguous and its elementwise passes
+    # vectorize (cutting them inside the kernel left strided transposes in every pass: ~20 %
+    # slower on the woven pyramid's level 1).
+    blocks = jax.tree.map(lambda a: jnp.moveaxis(a.reshape(a.shape[:-1] + (n // _BLOCK, _BLOCK)), -2, 0), lobes)
+    out = jax.lax.map(lambda b: _texels_kernel(b[0], b[1], order, iterations, tol, max_lobes),
+                      (blocks, rho_d.reshape((n // _BLOCK, _BLOCK, 3))))
     return jax.tree.map(lambda a: a.reshape((n,) + a.shape[2:]), out)
 
 
@@ -579,8 +612,8 @@ def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: in
     (up to `chunk`) that the level fills (the last chunk padded by repeating a texel), so that a
     whole pyramid reuses a few compiled kernels (three with the default `chunk`=4096); the Python
     loop runs over chunks, never over texels, and dispatches them asynchronously. Inside a chunk,
-    blocks of 256 texels run their EM loops one after another (`_em_batch`), each until its own
-    slowest texel has converged. Splitting into chunks and merging them are one jitted call each
+    blocks of 2048 texels are processed one after another, and inside them blocks of 256 texels
+    run their EM loops, each until its own slowest texel has converged (`_em_batch`). Splitting into chunks and merging them are one jitted call each
     and stay on the device; the one value read back per level is whether any child has a second
     lobe (it picks the cheaper kernel for one-lobe levels).
     """
