@@ -547,12 +547,9 @@ _BLOCK = 2048    # texels per block of a batch (the passes outside the EM loop)
 _EM_BLOCK = 256  # texels per block of the EM loop, which stops when ITS texels converge
 
 
-@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
-def _em_batch(children: BTFTexel, order: int, iterations: int, tol: float | None, max_lobes: int = 2,
-              one_lobe_children: bool = False):
-    n = children.weight.shape[0]
-    lobes = _child_lobes_soa(children, one_lobe_children)
-    rho_d = jnp.mean(children.rho_d, axis=1)
+def _em_blocks(lobes, rho_d, order: int, iterations: int, tol: float | None, max_lobes: int):
+    """`_texels_kernel` over a batch in structure-of-arrays layout (`_child_lobes_soa`)."""
+    n = rho_d.shape[0]
     if n <= _BLOCK or n % _BLOCK:
         return _texels_kernel(lobes, rho_d, order, iterations, tol, max_lobes)
     # Blocks of _BLOCK texels one after the other (lax.map), small enough to stay in cache; inside
@@ -565,6 +562,16 @@ def _em_batch(children: BTFTexel, order: int, iterations: int, tol: float | None
     out = jax.lax.map(lambda b: _texels_kernel(b[0], b[1], order, iterations, tol, max_lobes),
                       (blocks, rho_d.reshape((n // _BLOCK, _BLOCK, 3))))
     return jax.tree.map(lambda a: a.reshape((n,) + a.shape[2:]), out)
+
+
+_em_blocks_jit = jax.jit(_em_blocks, static_argnums=(2, 3, 4, 5))
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
+def _em_batch(children: BTFTexel, order: int, iterations: int, tol: float | None, max_lobes: int = 2,
+              one_lobe_children: bool = False):
+    return _em_blocks(_child_lobes_soa(children, one_lobe_children), jnp.mean(children.rho_d, axis=1),
+                      order, iterations, tol, max_lobes)
 
 
 def em_texels(children: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: int = DEFAULT_ITERATIONS,
@@ -587,9 +594,10 @@ def _bucket(n: int, chunk: int) -> int:
     return size
 
 
-@functools.partial(jax.jit, static_argnums=(1,))
-def _split_level(level: BTFTexel, size: int) -> tuple[BTFTexel, ...]:
-    """Children of an `H W` level in chunks of `size` texels (the last padded by repeating a texel)."""
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _split_level(level: BTFTexel, size: int, one_lobe_children: bool) -> tuple:
+    """Children of an `H W` level as the kernel's input (`_child_lobes_soa`, mean rho_d) in chunks
+    of `size` texels (the last padded by repeating a texel)."""
     children = gather_children(level)
     hh, ww = children.weight.shape[:2]
     n = hh * ww
@@ -598,7 +606,9 @@ def _split_level(level: BTFTexel, size: int) -> tuple[BTFTexel, ...]:
     if n_padded > n:
         index = jnp.minimum(jnp.arange(n_padded), n - 1)
         flat = jax.tree.map(lambda a: a[index], flat)
-    return tuple(jax.tree.map(lambda a: a[start:start + size], flat) for start in range(0, n_padded, size))
+    lobes, rho_d = _child_lobes_soa(flat, one_lobe_children), jnp.mean(flat.rho_d, axis=1)
+    return tuple((jax.tree.map(lambda a: a[..., start:start + size], lobes), rho_d[start:start + size])
+                 for start in range(0, n_padded, size))
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2))
@@ -615,16 +625,17 @@ def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: in
     whole pyramid reuses a few compiled kernels (three with the default `chunk`=4096); the Python
     loop runs over chunks, never over texels, and dispatches them asynchronously. Inside a chunk,
     blocks of 2048 texels are processed one after another, and inside them blocks of 256 texels
-    run their EM loops, each until its own slowest texel has converged (`_em_batch`). Splitting into chunks and merging them are one jitted call each
-    and stay on the device; the one value read back per level is whether any child has a second
-    lobe (it picks the cheaper kernel for one-lobe levels).
+    run their EM loops, each until its own slowest texel has converged (`_em_blocks`).
+    Splitting into chunks (already in the kernel's structure-of-arrays layout) and merging them
+    are one jitted call each and stay on the device; the one value read back per level is
+    whether any child has a second lobe (it picks the cheaper kernel for one-lobe levels).
     """
     level = jax.tree.map(jnp.asarray, level)
     h, w = level.weight.shape
     hh, ww = -(-h // 2), -(-w // 2)
     one_lobe = not bool(jnp.any(level.weight))   # e.g. level 0 of a fit: the cheaper kernel
-    pieces = [em_texels(c, order=order, iterations=iterations, tol=tol, one_lobe_children=one_lobe)
-              for c in _split_level(level, _bucket(hh * ww, chunk))]   # dispatched asynchronously
+    pieces = [_em_blocks_jit(lobes, rho_d, order, iterations, tol, 2)
+              for lobes, rho_d in _split_level(level, _bucket(hh * ww, chunk), one_lobe)]   # dispatched asynchronously
     return _merge_level(tuple(pieces), hh, ww)
 
 
