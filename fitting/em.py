@@ -324,8 +324,10 @@ def _lobe_nodes(normal, sigma_x, sigma_y, order):
     t, bt, n = jax.lax.optimization_barrier(_tangent_frame3(*normal))
     sx = jnp.maximum(sigma_x, SIGMA_FLOOR)[:, None, :]
     sy = jnp.maximum(sigma_y, SIGMA_FLOOR)[:, None, :]
-    aa, bb = a[None, :, None], b[None, :, None]
-    h = _normalize3(*(aa * sx * tc[:, None, :] + bb * sy * bc[:, None, :] + nc[:, None, :] for tc, bc, nc in zip(t, bt, n)))
+    ua, ub = a[None, :, None] * sx, b[None, :, None] * sy
+    # (T, B, N) is orthonormal, so |ua T + ub B + N|^2 = 1 + ua^2 + ub^2: no per-node dot product
+    norm = jax.lax.rsqrt(1 + ua * ua + ub * ub)
+    h = tuple((ua * tc[:, None, :] + ub * bc[:, None, :] + nc[:, None, :]) * norm for tc, bc, nc in zip(t, bt, n))
     inv = 1 / jnp.maximum(h[2], _HZ_FLOOR)
     h, x0, x1 = jax.lax.optimization_barrier((h, h[0] * inv, h[1] * inv))
     return h, x0, x1, q
