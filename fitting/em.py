@@ -360,7 +360,8 @@ def _relative_ise(p, q) -> Array:
 
 def _component_lobes(h, w, e, resp, m0, m1, mass):
     """Fitted Gaussians -> lobes (see the module docstring), batched over N: nodes `G Q N`,
-    responsibilities `G N`, means and masses `N`. Returns (rho_s 3-tuple, normal 3-tuple, sx, sy)."""
+    their weights w `G Q N`, the child lobes' RGB energies e (3-tuple of `G N`), responsibilities
+    `G N`, means and masses `N`. Returns (rho_s 3-tuple, normal 3-tuple, sx, sy)."""
     rw = resp[:, None, :] * w
     total = jnp.maximum(jnp.sum(rw, axis=(0, 1)), _TINY)
     mean = lambda a: sum_short(rw * a, axis=(0, 1)) / total  # noqa: E731
@@ -383,7 +384,7 @@ def _component_lobes(h, w, e, resp, m0, m1, mass):
     sy = jnp.maximum(jnp.sqrt(2 * mean(q * q)), SIGMA_FLOOR)
     denom = mass * jnp.pi * sx * sy
     ok = denom > _TINY
-    rho_s = tuple(jnp.where(ok, jnp.sum(resp[:, None, :] * ec, axis=(0, 1)) / jnp.where(ok, denom, 1.0), 0.0) for ec in e)
+    rho_s = tuple(jnp.where(ok, jnp.sum(resp * ec, axis=0) / jnp.where(ok, denom, 1.0), 0.0) for ec in e)
     return rho_s, normal, sx, sy
 
 
@@ -423,23 +424,24 @@ def _texels_kernel(lobes_soa, rho_d: Float[Array, "N 3"], order: int, iterations
     mass_l = 0.25 * child_mass                                                                         # 8 (or 4) N
     h, x0, x1, q = _lobe_nodes(normal, sigma_x, sigma_y, order)                                          # 8 Q N
     area = mass_l * jnp.pi * jnp.maximum(sigma_x, SIGMA_FLOOR) * jnp.maximum(sigma_y, SIGMA_FLOOR)       # 8 N
+    # A child lobe's nodes share its energy in the proportions q (which sum to 1), so the per-lobe
+    # energies carry everything: RGB e, and the EM weight (their mean, plus a geometric fallback
+    # so that a texel without any specular energy still gets a defined lobe).
+    e = tuple(area * rc for rc in rho_s)                                                                 # 3 x (8 N)
+    mass = (e[0] + e[1] + e[2]) / 3 + 1e-20 * mass_l                                                    # 8 N
     qq = q[None, :, None]
-    e = tuple(qq * (area * rc)[:, None, :] for rc in rho_s)                                              # 3 x (8 Q N)
-    # Geometric fallback so that a texel without any specular energy still gets a defined lobe.
-    w = (e[0] + e[1] + e[2]) / 3 + 1e-20 * qq * mass_l[:, None, :]
+    w = qq * mass[:, None, :]                                                                           # 8 Q N
     # Children's lobes as Gaussians in the common slope space (the density p of the 1-or-2 rule).
-    mass = jnp.sum(w, axis=1)                                                                           # 8 N
     total = jnp.maximum(jnp.sum(mass, axis=0), _TINY)
-    qn = w / jnp.maximum(mass, _TINY)[:, None, :]
-    mu0, mu1 = jnp.sum(qn * x0, axis=1), jnp.sum(qn * x1, axis=1)
-    var0 = jnp.maximum(jnp.sum(qn * (x0 - mu0[:, None]) ** 2, axis=1), VAR_FLOOR)
-    var1 = jnp.maximum(jnp.sum(qn * (x1 - mu1[:, None]) ** 2, axis=1), VAR_FLOOR)
-    p = (mass / total[None], mu0, mu1, var0, var1)
-    # The one-lobe summary: weighted mean and variance of all nodes.
-    wn = w / total[None, None]
-    om0, om1 = jnp.sum(wn * x0, axis=(0, 1)), jnp.sum(wn * x1, axis=(0, 1))
-    ov0 = jnp.maximum(jnp.sum(wn * (x0 - om0[None, None]) ** 2, axis=(0, 1)), VAR_FLOOR)
-    ov1 = jnp.maximum(jnp.sum(wn * (x1 - om1[None, None]) ** 2, axis=(0, 1)), VAR_FLOOR)
+    mu0, mu1 = jnp.sum(qq * x0, axis=1), jnp.sum(qq * x1, axis=1)
+    raw0, raw1 = jnp.sum(qq * (x0 - mu0[:, None]) ** 2, axis=1), jnp.sum(qq * (x1 - mu1[:, None]) ** 2, axis=1)
+    var0, var1 = jnp.maximum(raw0, VAR_FLOOR), jnp.maximum(raw1, VAR_FLOOR)
+    frac = mass / total[None]
+    p = (frac, mu0, mu1, var0, var1)
+    # The one-lobe summary: weighted mean and variance of all nodes (from the lobes' moments).
+    om0, om1 = jnp.sum(frac * mu0, axis=0), jnp.sum(frac * mu1, axis=0)
+    ov0 = jnp.maximum(jnp.sum(frac * (raw0 + (mu0 - om0[None]) ** 2), axis=0), VAR_FLOOR)
+    ov1 = jnp.maximum(jnp.sum(frac * (raw1 + (mu1 - om1[None]) ** 2), axis=0), VAR_FLOOR)
     one = jnp.ones_like(total)
     error_one = _relative_ise(p, tuple(a[None] for a in (one, om0, om1, ov0, ov1)))
     n_tex = total.shape[0]
