@@ -96,8 +96,11 @@ def em_fit_numpy(x, w, weights, means, variances, *, iterations, tol):
 
 
 def _component_lobes(h, w, e, resp, mean, mass):
-    """h N S 3, w N S, e N S 3, resp N S, mean N 2, mass N -> (rho_s N 3, normal N 3, sx N, sy N)."""
-    rw = resp * w
+    """h N G Q 3, w N G Q, e N G 3 (child lobes' energies), resp N G, mean N 2, mass N
+    -> (rho_s N 3, normal N 3, sx N, sy N)."""
+    n_tex = h.shape[0]
+    rw = (resp[..., None] * w).reshape(n_tex, -1)
+    h = h.reshape(n_tex, -1, 3)
     total = np.maximum(np.sum(rw, axis=1), _TINY)
 
     def frame_slopes(normal):
@@ -113,7 +116,7 @@ def _component_lobes(h, w, e, resp, mean, mass):
     _, _, _, p, q = frame_slopes(normal)
     sx = np.maximum(np.sqrt(2 * np.sum(rw * p * p, 1) / total), SIGMA_FLOOR)
     sy = np.maximum(np.sqrt(2 * np.sum(rw * q * q, 1) / total), SIGMA_FLOOR)
-    energy = np.einsum("ns,nsc->nc", resp, e)
+    energy = np.einsum("ng,ngc->nc", resp, e)
     denom = (mass * np.pi * sx * sy)[:, None]
     rho_s = np.where(denom > _TINY, energy / np.maximum(denom, _TINY), 0)
     return rho_s.astype(h.dtype), normal.astype(h.dtype), sx.astype(h.dtype), sy.astype(h.dtype)
@@ -138,30 +141,32 @@ def em_texels_numpy(children: dict, *, order=DEFAULT_ORDER, iterations=DEFAULT_I
     t, bt, n = _tangent_frame(normal)
     sx = np.maximum(sx_c, SIGMA_FLOOR)
     sy = np.maximum(sy_c, SIGMA_FLOOR)
-    h = _normalize(a[None, None, :, None] * (sx[..., None] * t)[:, :, None, :]
-                   + b[None, None, :, None] * (sy[..., None] * bt)[:, :, None, :] + n[:, :, None, :])  # N 8 Q 3
+    # (t, bt, n) is orthonormal: |u t + v bt + n|^2 = 1 + u^2 + v^2 (as fitting.em)
+    u, v = a[None, None, :] * sx[..., None], b[None, None, :] * sy[..., None]                       # N 8 Q
+    h = (u[..., None] * t[:, :, None, :] + v[..., None] * bt[:, :, None, :] + n[:, :, None, :]) \
+        / np.sqrt(1 + u * u + v * v)[..., None]                                             # N 8 Q 3
     hz = np.maximum(h[..., 2], _HZ_FLOOR)
     x = h[..., :2] / hz[..., None]
-    energy = (mass_l * np.pi * sx * sy)[..., None] * rho_s                                 # N 8 3
-    e = qw[None, None, :, None] * energy[:, :, None, :]                                   # N 8 Q 3
-    w = np.mean(e, axis=-1) + dtype.type(1e-20) * qw[None, None, :] * mass_l[..., None]
+    # A child lobe's nodes share its energy in the proportions qw (summing to 1): per-lobe energies
+    # and moments carry everything (as fitting.em).
+    e = (mass_l * np.pi * sx * sy)[..., None] * rho_s                                      # N 8 3
+    mass = np.mean(e, axis=-1) + dtype.type(1e-20) * mass_l                                # N 8
+    w = qw[None, None, :] * mass[..., None]                                                # N 8 Q
     # p, the one-lobe moment match, init
-    mass = np.sum(w, axis=2)
     total = np.maximum(np.sum(mass, axis=1), _TINY)
-    qn = w / np.maximum(mass, _TINY)[..., None]
-    mu = np.einsum("njq,njqd->njd", qn, x)
+    mu = np.einsum("q,njqd->njd", qw, x)
     dev = x - mu[:, :, None, :]
-    var = np.maximum(np.einsum("njq,njqd->njd", qn, dev * dev), VAR_FLOOR)
-    p = (mass / total[:, None], mu, var)
+    raw = np.einsum("q,njqd->njd", qw, dev * dev)
+    var = np.maximum(raw, VAR_FLOOR)
+    frac = mass / total[:, None]
+    p = (frac, mu, var)
     n_tex, n_lobes, n_nodes = w.shape
     idx = np.arange(n_tex)
     j1 = np.argmax(mass, axis=1)
     d2 = np.sum((mu - mu[idx, j1][:, None]) ** 2 / (var + var[idx, j1][:, None]), axis=-1)
     j2 = np.argmax(mass * d2, axis=1)
-    hs, xs, ws, es = (h.reshape(n_tex, -1, 3), x.reshape(n_tex, -1, 2), w.reshape(n_tex, -1), e.reshape(n_tex, -1, 3))
-    wn = ws / np.maximum(np.sum(ws, 1, keepdims=True), _TINY)
-    one_mean = np.einsum("ns,nsd->nd", wn, xs)
-    one_var = np.maximum(np.einsum("ns,nsd->nd", wn, (xs - one_mean[:, None]) ** 2), VAR_FLOOR)
+    one_mean = np.einsum("nj,njd->nd", frac, mu)
+    one_var = np.maximum(np.einsum("nj,njd->nd", frac, raw + (mu - one_mean[:, None]) ** 2), VAR_FLOOR)
     ones = np.ones((n_tex, 1), dtype)
     error_one = _relative_ise(p, (ones, one_mean[:, None], one_var[:, None]))
     run = error_one > ONE_LOBE_TOLERANCE
@@ -183,21 +188,20 @@ def em_texels_numpy(children: dict, *, order=DEFAULT_ORDER, iterations=DEFAULT_I
     k1 = 1 - k0
     # Lobe 0 (the major component where two lobes are kept, else the single summary), then the
     # minor component's lobe where two are kept.
-    first_resp = np.ones(ws.shape, dtype)
+    first_resp = np.ones(mass.shape, dtype)
     first_mean = one_mean.copy()
     first_mass = np.ones(n_tex, dtype)
     if two.any():
         resp, _ = _e_step(x[two], w[two] / np.maximum(np.sum(w[two], 2, keepdims=True), _TINY), weights[two],
                           means[two], variances[two])
-        resp = np.repeat(resp, n_nodes, axis=1)                                             # T S K
         it = np.arange(int(two.sum()))
         first_resp[two] = resp[it, :, k0[two]]
         first_mean[two] = means[two, k0[two]]
         first_mass[two] = weights[two, k0[two]]
-    lobe0 = _component_lobes(hs, ws, es, first_resp, first_mean, first_mass)
+    lobe0 = _component_lobes(h, w, e, first_resp, first_mean, first_mass)
     lobe1 = tuple(u.copy() for u in lobe0)
     if two.any():
-        minor = _component_lobes(hs[two], ws[two], es[two], resp[it, :, k1[two]], means[two, k1[two]],
+        minor = _component_lobes(h[two], w[two], e[two], resp[it, :, k1[two]], means[two, k1[two]],
                                  weights[two, k1[two]])
         for u, m in zip(lobe1, minor):
             u[two] = m

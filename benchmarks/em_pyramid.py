@@ -318,7 +318,7 @@ def main(argv=None):
     print(f"# EM multi-resolution BTF benchmark ({platform.machine()}, {jax.devices()[0].platform}, "
           f"jax {jax.__version__}, {'quick' if quick else 'full'})\n")
 
-    repeats, np_repeats = (2, 1) if quick else (5, 3)
+    repeats, np_repeats = (2, 1) if quick else (11, 5)
     synth0 = synth_maps(jax.random.PRNGKey(0), size)
     speed_rows = [(label, speed(lv0, repeats, np_repeats)) for label, lv0 in
                   (("synth_maps (woven)", synth0), ("two directions in every 2x2 block", two_direction_level0(5, size)))]
