@@ -405,6 +405,12 @@ def _child_lobes_soa(children: BTFTexel, one_lobe_children: bool):
             jnp.transpose(child_mass))
 
 
+def _cut_blocks(tree, size: int):
+    """Arrays with the texel axis last (`... N`) -> blocks of `size` texels, block axis first
+    (`N/size ... size`), each block contiguous."""
+    return jax.tree.map(lambda a: jnp.moveaxis(a.reshape(a.shape[:-1] + (a.shape[-1] // size, size)), -2, 0), tree)
+
+
 def _no_em(init, groups):
     """`_em_core`'s outputs where no texel runs EM: the initial parameters, nothing iterated."""
     n = init[0].shape[-1]
@@ -463,18 +469,16 @@ def _texels_kernel(lobes_soa, rho_d: Float[Array, "N 3"], order: int, iterations
     init = (jnp.full((2, n_tex), 0.5, dtype),) + tuple(jnp.stack([at1(a), at2(a)]) for a in (mu0, mu1, var0, var1))
     # EM only where one lobe is not enough (the others stop at once).
     run = error_one > ONE_LOBE_TOLERANCE
-    em = functools.partial(_em_core, iterations=iterations, tol=tol, var_floor=VAR_FLOOR, virtual=VIRTUAL)
+    em_loop = functools.partial(_em_core, iterations=iterations, tol=tol, var_floor=VAR_FLOOR, virtual=VIRTUAL)
 
     def fit():
         if n_tex <= _EM_BLOCK or n_tex % _EM_BLOCK:
-            return em(x0, x1, w, init, run=run)
+            return em_loop(x0, x1, w, init, run=run)
         # The EM loop in blocks of _EM_BLOCK texels one after the other: each block iterates only
         # as long as its own slowest texel, and not at all where none of its texels needs EM.
-        blocks = n_tex // _EM_BLOCK
-        cut = lambda a: jnp.moveaxis(a.reshape(a.shape[:-1] + (blocks, _EM_BLOCK)), -2, 0)  # noqa: E731
-        out = jax.lax.map(lambda b: jax.lax.cond(jnp.any(b[-1]), lambda: em(*b[:-1], run=b[-1]),
+        out = jax.lax.map(lambda b: jax.lax.cond(jnp.any(b[-1]), lambda: em_loop(*b[:-1], run=b[-1]),
                                                  lambda: _no_em(b[3], b[2].shape[0])),
-                          jax.tree.map(cut, (x0, x1, w, init, run)))
+                          _cut_blocks((x0, x1, w, init, run), _EM_BLOCK))
         return jax.tree.map(lambda a: jnp.moveaxis(a, 0, -2).reshape(a.shape[1:-1] + (n_tex,)), out)
 
     def fit_and_error():
@@ -562,9 +566,8 @@ def _em_blocks(lobes, rho_d, order: int, iterations: int, tol: float | None, max
     # axis first, texels last), so that a block's arrays are contiguous and its elementwise passes
     # vectorize (cutting them inside the kernel left strided transposes in every pass: ~20 %
     # slower on the woven pyramid's level 1).
-    blocks = jax.tree.map(lambda a: jnp.moveaxis(a.reshape(a.shape[:-1] + (n // _BLOCK, _BLOCK)), -2, 0), lobes)
     out = jax.lax.map(lambda b: _texels_kernel(b[0], b[1], order, iterations, tol, max_lobes),
-                      (blocks, rho_d.reshape((n // _BLOCK, _BLOCK, 3))))
+                      (_cut_blocks(lobes, _BLOCK), rho_d.reshape((n // _BLOCK, _BLOCK, 3))))
     return jax.tree.map(lambda a: a.reshape((n,) + a.shape[2:]), out)
 
 
