@@ -93,7 +93,8 @@ def main(argv=None) -> int:
     ref = jax.jit(lambda s: render_raymarch(s, samples=512, batch_size=128, return_parts=True)[1][1])(small)
     ref = jax.block_until_ready(ref)
     march = []
-    for samples in (4, 8, 12, 16, 24, 32, 48, 64, 96, 128):
+    # every count up to 8 (8 samples already give ~1.4 %): the ray march at its cheapest 2 % count
+    for samples in (4, 5, 6, 7, 8, 10, 12, 16, 24, 32, 48, 64, 96, 128):
         # returns (image, scattering): the whole frame is computed and timed
         fn = jax.jit(lambda s, n=samples: (lambda out: (out[0], out[1][1]))(render_raymarch(s, samples=n, return_parts=True)))
         _, t = timed(lambda: fn(small), 3)
@@ -104,7 +105,7 @@ def main(argv=None) -> int:
             break
     plane_runs = []
     for g_pp in (False, True):  # the paper's 15x10 texture-coordinate mesh, then g per pixel
-        for n, m in ((4, 2), (6, 2), (8, 2), (8, 4), (12, 3), (16, 4), (24, 6), (30, 6), (48, 8)):
+        for n, m in ((4, 2), (6, 2), (8, 2), (6, 3), (8, 3), (6, 4), (8, 4), (12, 3), (16, 4), (24, 6), (30, 6), (48, 8)):
             fn = jax.jit(lambda s, n=n, m=m, g_pp=g_pp: (lambda out: (out[0], sum(out[1][1])))(
                 render_planes(s, planes=n, subplanes=m, g_per_pixel=g_pp, tables=not g_pp, return_parts=True)))
             _, t = timed(lambda: fn(small), 3)
@@ -112,10 +113,11 @@ def main(argv=None) -> int:
             label = f"{n}x{m}" + (", g per pixel" if g_pp else ", mesh 15x10 + tables")
             plane_runs.append((label, err, t))
             print(f"  planes {label}: err {err:.4f} time {t:.4f}", flush=True)
-            if err <= TARGET_ERR:
+            if err <= TARGET_ERR:  # the next settings of this family cost more
                 break
-    m_ok = [r for r in march if r[1] <= TARGET_ERR]
-    p_ok = [r for r in plane_runs if r[1] <= TARGET_ERR]
+    # each method's fastest setting that reaches the target error
+    m_ok = sorted((r for r in march if r[1] <= TARGET_ERR), key=lambda r: r[2])
+    p_ok = sorted((r for r in plane_runs if r[1] <= TARGET_ERR), key=lambda r: r[2])
     if m_ok and p_ok:
         speedup = m_ok[0][2] / p_ok[0][2]
         verdict = f"{speedup:.2f}x: " + ("met" if speedup >= 5 else "MISSED")
