@@ -637,7 +637,7 @@ def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: in
     are one jitted call each and stay on the device; the one value read back per level is
     whether any child has a second lobe (it picks the cheaper kernel for one-lobe levels).
     """
-    level = jax.tree.map(jnp.asarray, level)
+    level = jax.tree.map(lambda a: a if isinstance(a, jax.Array) else jnp.asarray(a), level)
     h, w = level.weight.shape
     hh, ww = -(-h // 2), -(-w // 2)
     one_lobe = not bool(jnp.any(level.weight))   # e.g. level 0 of a fit: the cheaper kernel
