@@ -389,20 +389,19 @@ def _component_lobes(h, w, e, resp, m0, m1, mass):
 
 
 def _child_lobes_soa(children: BTFTexel, one_lobe_children: bool):
-    """Children `N 4 ...` -> their lobes in structure-of-arrays layout, texel axis last:
-    (normal 3-tuple, rho_s 3-tuple, sigma_x, sigma_y, mass), each `L N` with L = 8 child lobes
-    (4 with `one_lobe_children`: every child has weight 0, e.g. level 0 of a fit, so its lobe 1
-    would add exact zeros to every sum and is left out: half the nodes, the same texels up to
-    the order of the sums)."""
+    """Children `4 N ...` (child axis first) -> their lobes in structure-of-arrays layout, texel
+    axis last: (normal 3-tuple, rho_s 3-tuple, sigma_x, sigma_y, mass), each `L N` with L = 8
+    child lobes (4 with `one_lobe_children`: every child has weight 0, e.g. level 0 of a fit, so
+    its lobe 1 would add exact zeros to every sum and is left out: half the nodes, the same
+    texels up to the order of the sums)."""
     if one_lobe_children:
-        lobes = children.lobe0                                                                           # N 4 ...
+        lobes = children.lobe0                                                                           # 4 N ...
         child_mass = jnp.ones_like(children.weight)
     else:
-        lobes = jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=1), children.lobe0, children.lobe1)   # N 8 ...
-        child_mass = jnp.concatenate([1 - children.weight, children.weight], axis=1)
-    comps = lambda a: tuple(jnp.transpose(a[..., i]) for i in range(3))  # noqa: E731  N 8 3 -> 3 x (8 N)
-    return (comps(lobes.normal), comps(lobes.rho_s), jnp.transpose(lobes.sigma_x), jnp.transpose(lobes.sigma_y),
-            jnp.transpose(child_mass))
+        lobes = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), children.lobe0, children.lobe1)     # 8 N ...
+        child_mass = jnp.concatenate([1 - children.weight, children.weight])
+    comps = lambda a: tuple(a[..., i] for i in range(3))  # noqa: E731  8 N 3 -> 3 x (8 N)
+    return comps(lobes.normal), comps(lobes.rho_s), lobes.sigma_x, lobes.sigma_y, child_mass
 
 
 def _cut_blocks(tree, size: int):
@@ -541,12 +540,17 @@ def mip_texel(children: BTFTexel) -> BTFTexel:
 def gather_children(level: BTFTexel) -> BTFTexel:
     """An `H W` level -> `ceil(H/2) ceil(W/2) 4` children (odd sizes edge-padded as
     `jaxrender.textures.downsample2`). Child order: (0,0), (1,0), (0,1), (1,1) offsets (row, col)."""
+    return jax.tree.map(lambda a: jnp.moveaxis(a, 0, 2), _children_first(level))
+
+
+def _children_first(level: BTFTexel) -> BTFTexel:
+    """`gather_children` with the child axis first: `4 ceil(H/2) ceil(W/2)`."""
     h, w = level.weight.shape
 
     def one(a):
         pad = ((0, h % 2), (0, w % 2)) + ((0, 0),) * (a.ndim - 2)
         a = jnp.pad(a, pad, mode="edge")
-        return jnp.stack([a[0::2, 0::2], a[1::2, 0::2], a[0::2, 1::2], a[1::2, 1::2]], axis=2)
+        return jnp.stack([a[0::2, 0::2], a[1::2, 0::2], a[0::2, 1::2], a[1::2, 1::2]])
 
     return jax.tree.map(one, level)
 
@@ -577,7 +581,8 @@ _em_blocks_jit = jax.jit(_em_blocks, static_argnums=(2, 3, 4, 5))
 @functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
 def _em_batch(children: BTFTexel, order: int, iterations: int, tol: float | None, max_lobes: int = 2,
               one_lobe_children: bool = False):
-    return _em_blocks(_child_lobes_soa(children, one_lobe_children), jnp.mean(children.rho_d, axis=1),
+    first = jax.tree.map(lambda a: jnp.moveaxis(a, 1, 0), children)
+    return _em_blocks(_child_lobes_soa(first, one_lobe_children), jnp.mean(children.rho_d, axis=1),
                       order, iterations, tol, max_lobes)
 
 
@@ -605,15 +610,13 @@ def _bucket(n: int, chunk: int) -> int:
 def _split_level(level: BTFTexel, size: int, one_lobe_children: bool) -> tuple:
     """Children of an `H W` level as the kernel's input (`_child_lobes_soa`, mean rho_d) in chunks
     of `size` texels (the last padded by repeating a texel)."""
-    children = gather_children(level)
-    hh, ww = children.weight.shape[:2]
+    children = _children_first(level)
+    hh, ww = children.weight.shape[1:3]
     n = hh * ww
-    flat = jax.tree.map(lambda a: a.reshape((n,) + a.shape[2:]), children)
     n_padded = -(-n // size) * size
-    if n_padded > n:
-        index = jnp.minimum(jnp.arange(n_padded), n - 1)
-        flat = jax.tree.map(lambda a: a[index], flat)
-    lobes, rho_d = _child_lobes_soa(flat, one_lobe_children), jnp.mean(flat.rho_d, axis=1)
+    pad = lambda a: jnp.pad(a, ((0, 0), (0, n_padded - n)) + ((0, 0),) * (a.ndim - 2), mode="edge")  # noqa: E731
+    flat = jax.tree.map(lambda a: pad(a.reshape((4, n) + a.shape[3:])), children)
+    lobes, rho_d = _child_lobes_soa(flat, one_lobe_children), jnp.mean(flat.rho_d, axis=0)
     return tuple((jax.tree.map(lambda a: a[..., start:start + size], lobes), rho_d[start:start + size])
                  for start in range(0, n_padded, size))
 
