@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from fitting import cli
-from fitting.em import em_texels, gather_children, mip_texel, moment_matched_texels
+from fitting.em import em_downsample, em_texels, gather_children, mip_texel, moment_matched_texels
 from fitting.pyramid import build_pyramid, pyramid_levels
 from jaxrender import brdf
 from jaxrender.brdf import BTFTexel, reflectance
@@ -129,6 +129,22 @@ def test_gather_children_pads_odd_sizes_like_downsample2():
         for j in range(2):
             block = [padded[2 * i, 2 * j], padded[2 * i + 1, 2 * j], padded[2 * i, 2 * j + 1], padded[2 * i + 1, 2 * j + 1]]
             np.testing.assert_array_equal(children.lobe0.sigma_x[i, j], block)
+
+
+def test_em_downsample_equals_em_texels_on_the_gathered_children():
+    """The level path (split into padded structure-of-arrays chunks, merged back) gives each
+    texel exactly what the batch kernel gives its gathered children: odd sizes, several chunks
+    with a padded last one, one-lobe children (level 0) and two-lobe children (level 1)."""
+    level0 = BTFTexel.from_channels(_level0((13, 11), 3))
+    level1, _ = em_downsample(level0, chunk=16)            # 7x6 = 42 texels: chunks of 16, the last padded
+    assert level1.weight.shape == (7, 6) and bool(jnp.any(level1.weight > 0))
+    for level, coarse, one_lobe in ((level0, level1, True), (level1, em_downsample(level1, chunk=16)[0], False)):
+        children = gather_children(level)
+        hh, ww = children.weight.shape[:2]
+        flat = jax.tree.map(lambda a: a.reshape((hh * ww,) + a.shape[2:]), children)
+        expected, _ = em_texels(flat, one_lobe_children=one_lobe)
+        for a, b in zip(jax.tree.leaves(coarse), jax.tree.leaves(expected)):
+            np.testing.assert_array_equal(np.asarray(a).reshape(b.shape), np.asarray(b))
 
 
 def test_build_pyramid_writes_every_channel_on_every_level_and_btf_json_last(tmp_path):
