@@ -14,6 +14,8 @@ against a batched numpy implementation of the same EM, and agreement with scikit
     same samples: final log-likelihood and parameters.
 
     python benchmarks/em_pyramid.py [--quick]
+    python benchmarks/em_pyramid.py --speed-runs 5   # only (b) on the woven BTF: 5 measurements
+                                                     # and the time per level
 """
 
 from __future__ import annotations
@@ -34,8 +36,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from _em_numpy import em_texels_numpy, gather_children_numpy, pyramid_numpy  # noqa: E402
 
-from fitting.em import (GaussianMixture, em_fit, em_texels, gather_children, mip_texel,  # noqa: E402
-                        moment_matched_texel)
+from fitting.em import (GaussianMixture, em_downsample, em_fit, em_texels, gather_children,  # noqa: E402
+                        mip_texel, moment_matched_texel)
 from fitting.pyramid import pyramid_levels, pyramid_sizes  # noqa: E402
 from fitting.synth import synth_maps  # noqa: E402
 from jaxrender.brdf import BTFTexel, reflectance  # noqa: E402
@@ -307,10 +309,38 @@ def sklearn_agreement(n_problems, n_samples):
 # ---------------------------------------------------------------------------------------------
 
 
+def speed_runs(runs: int, size=(256, 256)):
+    """(b) on the woven BTF only, `runs` times (each a median of 11 JAX / 5 numpy calls), then the
+    time of every level alone (each from the same JAX input level)."""
+    level0 = synth_maps(jax.random.PRNGKey(0), size)
+    print(f"## Woven {size[0]}x{size[1]} pyramid, {runs} measurements (load average at start {os.getloadavg()[0]:.1f})\n")
+    print("| run | JAX wall (s) | numpy wall (s) | speed-up (wall) | speed-up (CPU) |\n|---|---|---|---|---|")
+    ratios = []
+    for run in range(runs):
+        s = speed(level0, 11, 5)
+        ratios.append(s["speedup"])
+        print(f"| {run + 1} | {s['jax_s']:.4f} | {s['numpy_s']:.4f} | {s['speedup']:.1f}x | "
+              f"{s['numpy_cpu'] / s['jax_cpu']:.1f}x |", flush=True)
+    print(f"\nmedian {np.median(ratios):.1f}x, range {min(ratios):.1f}-{max(ratios):.1f}x\n")
+    print("| level | size | JAX (s) | numpy (s) | speed-up |\n|---|---|---|---|---|")
+    levels = [level0] + pyramid_levels(level0)[0]
+    for i, (fine, coarse) in enumerate(zip(levels[:-1], levels[1:])):
+        ours, _ = _timed(lambda: jax.block_until_ready(em_downsample(fine)), 15)
+        d = gather_children_numpy(_as_dict(fine))
+        theirs, _ = _timed(lambda: em_texels_numpy(d), 5)
+        h, w = coarse.weight.shape
+        print(f"| {i + 1} | {h}x{w} | {ours:.4f} | {theirs:.4f} | {theirs / ours:.1f}x |")
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small sizes (about a minute)")
+    parser.add_argument("--speed-runs", type=int, default=0, metavar="N",
+                        help="only the woven pyramid's speed, N measurements, and the time per level")
     args = parser.parse_args(argv)
+    if args.speed_runs:
+        speed_runs(args.speed_runs)
+        return
     quick = args.quick
     n_texels, n_pairs = (256, 2000) if quick else (4096, 8000)
     size = (64, 64) if quick else (256, 256)
