@@ -160,7 +160,7 @@ def em_texels_numpy(children: dict, *, order=DEFAULT_ORDER, iterations=DEFAULT_I
     var = np.maximum(raw, VAR_FLOOR)
     frac = mass / total[:, None]
     p = (frac, mu, var)
-    n_tex, n_lobes, n_nodes = w.shape
+    n_tex = w.shape[0]
     idx = np.arange(n_tex)
     j1 = np.argmax(mass, axis=1)
     d2 = np.sum((mu - mu[idx, j1][:, None]) ** 2 / (var + var[idx, j1][:, None]), axis=-1)

@@ -48,7 +48,7 @@ def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = 
             progress(1)
     # statistics once every level is dispatched, in one read-back (each level reads back only
     # `em_downsample`'s one-lobe check)
-    summary = np.asarray(_level_summary(infos))
+    summary = np.asarray(_level_summary(infos)) if infos else []
     stats = [{"size": list(level.weight.shape), "two_lobe_fraction": float(two),
               "max_iterations": int(iterations), "converged_fraction": float(converged)}
              for level, (two, iterations, converged) in zip(out, summary)]

@@ -179,6 +179,10 @@ def test_pyramid_cli_levels_and_bad_input(tmp_path, capsys):
     manifest = json.loads((btf_dir / "btf.json").read_text())
     assert [tuple(e["size"]) for e in manifest["levels"]] == [(5, 6), (3, 3)] and manifest["model"] == "paper"
     assert sorted(p.name for p in btf_dir.glob("level_*.exr")) == ["level_00.exr", "level_01.exr"]
+    assert cli.main(["pyramid", str(btf_dir), "--levels", "1"]) == 0  # level 0 only: no coarse level
+    manifest = json.loads((btf_dir / "btf.json").read_text())
+    assert [tuple(e["size"]) for e in manifest["levels"]] == [(5, 6)] and manifest["pyramid"]["levels"] == []
+    assert sorted(p.name for p in btf_dir.glob("level_*.exr")) == ["level_00.exr"]
     capsys.readouterr()
     (btf_dir / "btf.json").unlink()  # an incomplete directory
     assert cli.main(["pyramid", str(btf_dir)]) == 2
