@@ -310,14 +310,14 @@ def sklearn_agreement(n_problems, n_samples):
 
 
 def speed_runs(runs: int, size=(256, 256)):
-    """(b) on the woven BTF only, `runs` times (each a median of 11 JAX / 5 numpy calls), then the
+    """(b) on the woven BTF only, `runs` times (each a median of 31 JAX / 7 numpy calls), then the
     time of every level alone (each from the same JAX input level)."""
     level0 = synth_maps(jax.random.PRNGKey(0), size)
     print(f"## Woven {size[0]}x{size[1]} pyramid, {runs} measurements (load average at start {os.getloadavg()[0]:.1f})\n")
     print("| run | JAX wall (s) | numpy wall (s) | speed-up (wall) | speed-up (CPU) |\n|---|---|---|---|---|")
     ratios = []
     for run in range(runs):
-        s = speed(level0, 11, 5)
+        s = speed(level0, 31, 7)
         ratios.append(s["speedup"])
         print(f"| {run + 1} | {s['jax_s']:.4f} | {s['numpy_s']:.4f} | {s['speedup']:.1f}x | "
               f"{s['numpy_cpu'] / s['jax_cpu']:.1f}x |", flush=True)
@@ -348,7 +348,7 @@ def main(argv=None):
     print(f"# EM multi-resolution BTF benchmark ({platform.machine()}, {jax.devices()[0].platform}, "
           f"jax {jax.__version__}, {'quick' if quick else 'full'})\n")
 
-    repeats, np_repeats = (2, 1) if quick else (11, 5)
+    repeats, np_repeats = (2, 1) if quick else (31, 7)
     synth0 = synth_maps(jax.random.PRNGKey(0), size)
     speed_rows = [(label, speed(lv0, repeats, np_repeats)) for label, lv0 in
                   (("synth_maps (woven)", synth0), ("two directions in every 2x2 block", two_direction_level0(5, size)))]
