@@ -370,7 +370,7 @@ def main(argv=None):
     for r in rows:
         print(f"| {r['level']} | {r['size'][0]}x{r['size'][1]} | {r['EM 2-lobe']:.4f} | {r['moment 1-lobe']:.4f} | "
               f"{r['mip']:.4f} | {100 * r['two-lobe texels']:.0f} % |")
-    fig_path = FIGURES / "em_pyramid.png"
+    fig_path = FIGURES / ("em_pyramid_quick.png" if quick else "em_pyramid.png")  # the committed figure is the full one
     figure(rows, level0, pyramids, fig_path)
     print(f"\nfigure: {fig_path.relative_to(Path(__file__).parent.parent)}")
 
