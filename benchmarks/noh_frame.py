@@ -15,7 +15,7 @@ Process CPU time per frame is printed too: on a shared machine it is the stable 
 2-core machine runs a frame in about CPU time / 2 when both cores are busy).
 
 Run: `python benchmarks/noh_frame.py` (720x480) or `--quick` (360x240, 5 repeats). Writes the last
-frame to benchmarks/figures/noh_frame.png.
+frame to benchmarks/figures/noh_frame.png (`--quick`: noh_frame_quick.png, not committed).
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ def main() -> None:
 
     from jaxrender.io import write_png
 
-    out = Path(__file__).resolve().parent / "figures" / "noh_frame.png"
+    out = Path(__file__).resolve().parent / "figures" / ("noh_frame_quick.png" if args.quick else "noh_frame.png")
     out.parent.mkdir(exist_ok=True)
     lum = np.asarray(last).reshape(-1, 3)[np.asarray(prep.g_index)] @ np.asarray([0.2126, 0.7152, 0.0722], np.float32)
     write_png(out, noh.tonemap_frames(np.asarray(last)[None], exposure=0.3 / float(np.percentile(lum, 90)))[0])

@@ -20,7 +20,8 @@ import numpy as np
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="32x128, 1500 steps (the test's size)")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "figures" / "ripples_wavelength.png")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="figure path (default benchmarks/figures/ripples_wavelength.png, _quick.png with --quick)")
     args = parser.parse_args(argv)
 
     import jax
@@ -33,6 +34,8 @@ def main(argv=None) -> int:
     from sims import RippleParams, dominant_wavelength, init_ripples, simulate_ripples, spectral_centroid_wavelength
 
     shape, steps = ((32, 128), 1500) if args.quick else ((128, 128), 3000)
+    if args.out is None:
+        args.out = Path(__file__).parent / "figures" / ("ripples_wavelength_quick.png" if args.quick else "ripples_wavelength.png")
     L0s = np.array([2.0, 3.5, 5.0, 6.5, 8.0, 9.5])
     h0 = init_ripples(jax.random.key(0), shape, dtype=jnp.float32)
     results = {}
