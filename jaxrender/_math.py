@@ -51,9 +51,10 @@ SHORT_AXIS = 16  # axes up to this length are summed as written-out elementwise 
 def sum_short(a: ArrayLike, axis: int | tuple[int, ...]) -> Array:
     """`jnp.sum` over `axis` (int or tuple); axes of at most SHORT_AXIS entries (the 9 nodes of a
     lobe, the 6 sub-planes of an interval) are added slice by slice, which XLA on CPU fuses into
-    one vectorized elementwise loop. Use it where measured faster: for a short MIDDLE axis XLA's
-    reduction was several times slower (the EM E-step), while long or leading-axis reductions
-    (YNNPACK on CPU) are usually faster as `jnp.sum`."""
+    one vectorized elementwise loop. Use it where measured faster, which depends on the producer
+    as much as on the axis: XLA's reduction was several times slower for a short MIDDLE axis (the
+    EM E-step) and YNNPACK slower for the EM M-step, lobe conversion and ISE sums over leading
+    axes, while `jnp.sum` stayed faster for the EM node moments and the light-shaft forward pass."""
     a = jnp.asarray(a)
     axes = sorted(ax % a.ndim for ax in ((axis,) if isinstance(axis, int) else axis))
     for ax in reversed(axes):
