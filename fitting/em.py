@@ -562,16 +562,24 @@ _EM_BLOCK = 256  # texels per block of the EM loop, which stops when ITS texels 
 def _em_blocks(lobes, rho_d, order: int, iterations: int, tol: float | None, max_lobes: int):
     """`_texels_kernel` over a batch in structure-of-arrays layout (`_child_lobes_soa`)."""
     n = rho_d.shape[0]
+    kernel = lambda b: _texels_kernel(b[0], b[1], order, iterations, tol, max_lobes)  # noqa: E731
     if n <= _BLOCK or n % _BLOCK:
-        return _texels_kernel(lobes, rho_d, order, iterations, tol, max_lobes)
-    # Blocks of _BLOCK texels one after the other (lax.map), small enough to stay in cache; inside
-    # a block the EM loop runs in smaller blocks still (`_texels_kernel`). Every texel's result
-    # is the same as in one batch. The blocks are cut from the structure-of-arrays layout (block
-    # axis first, texels last), so that a block's arrays are contiguous and its elementwise passes
-    # vectorize (cutting them inside the kernel left strided transposes in every pass: ~20 %
-    # slower on the woven pyramid's level 1).
-    out = jax.lax.map(lambda b: _texels_kernel(b[0], b[1], order, iterations, tol, max_lobes),
-                      (_cut_blocks(lobes, _BLOCK), rho_d.reshape((n // _BLOCK, _BLOCK, 3))))
+        return kernel((lobes, rho_d))
+    # Blocks of _BLOCK texels, small enough to stay in cache; inside a block the EM loop runs in
+    # smaller blocks still (`_texels_kernel`). Every texel's result is the same as in one batch.
+    # The blocks are cut from the structure-of-arrays layout (block axis first, texels last), so
+    # that a block's arrays are contiguous and its elementwise passes vectorize (cutting them
+    # inside the kernel left strided transposes in every pass: ~20 % slower on level 1).
+    blocks = (_cut_blocks(lobes, _BLOCK), rho_d.reshape((n // _BLOCK, _BLOCK, 3)))
+    if n % (2 * _BLOCK):
+        out = jax.lax.map(kernel, blocks)   # one after the other
+    else:
+        # Two blocks per step with no data between them: XLA:CPU's thunk executor runs their
+        # passes concurrently, which uses two cores better than splitting each pass (~9 % faster
+        # on level 1 of the woven pyramid).
+        pairs = jax.tree.map(lambda a: a.reshape((a.shape[0] // 2, 2) + a.shape[1:]), blocks)
+        two = lambda b: jax.tree.map(lambda *xs: jnp.stack(xs), *(kernel(jax.tree.map(lambda a: a[i], b)) for i in range(2)))  # noqa: E731
+        out = jax.tree.map(lambda a: a.reshape((-1,) + a.shape[2:]), jax.lax.map(two, pairs))
     return jax.tree.map(lambda a: a.reshape((n,) + a.shape[2:]), out)
 
 
@@ -598,12 +606,15 @@ def moment_matched_texels(children: BTFTexel, *, order: int = DEFAULT_ORDER) -> 
     return _em_batch(children, order, 0, None, 1)[0]
 
 
-def _bucket(n: int, chunk: int) -> int:
-    """The largest of the buckets 16, 256, 4096, ... (at most `chunk`) that `n` texels fill."""
-    size = 16
-    while size * 16 <= min(n, chunk):
-        size *= 16
-    return size
+_CHUNK_SIZES = (16, 256, 1024, 4096, 65536)  # the kernel shapes levels are cut into (a few, shared by all levels)
+_CALL_COST = 300  # the fixed cost of one kernel call, in texels of work (~0.15 ms on a 2-core CPU)
+
+
+def _chunk_size(n: int, chunk: int) -> int:
+    """The chunk size (from _CHUNK_SIZES, at most `chunk`) that costs `n` texels the least: every
+    chunk is one kernel call of fixed cost _CALL_COST plus its texels, padding included."""
+    sizes = [s for s in _CHUNK_SIZES if s <= chunk] or [_CHUNK_SIZES[0]]
+    return min(sizes, key=lambda s: (-(-n // s) * (_CALL_COST + s), s))
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2))
@@ -630,12 +641,14 @@ def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: in
                   tol: float | None = None, chunk: int = 4096) -> tuple[BTFTexel, EMInfo]:
     """The next pyramid level of an `H W` BTFTexel level: `ceil(H/2) ceil(W/2)`.
 
-    Texels are processed in fixed-size chunks, the largest of the buckets 16, 256, 4096, ...
-    (up to `chunk`) that the level fills (the last chunk padded by repeating a texel), so that a
-    whole pyramid reuses a few compiled kernels (three with the default `chunk`=4096); the Python
-    loop runs over chunks, never over texels, and dispatches them asynchronously. Inside a chunk,
-    blocks of 2048 texels are processed one after another, and inside them blocks of 256 texels
-    run their EM loops, each until its own slowest texel has converged (`_em_blocks`).
+    Texels are processed in chunks of a few fixed sizes (16, 256, 1024, 4096 texels, at most
+    `chunk`; the last chunk padded by repeating a texel), so that a whole pyramid reuses a few
+    compiled kernels; each level takes the size that costs it least, counting the fixed cost of a
+    kernel call (~300 texels of work) per chunk (e.g. 64 texels: one chunk of 256, not four of
+    16). The Python loop runs over chunks, never over texels, and dispatches them
+    asynchronously. Inside a chunk, blocks of 2048 texels are processed two at a time, and
+    inside them blocks of 256 texels run their EM loops, each until its own slowest texel has
+    converged (`_em_blocks`).
     Splitting into chunks (already in the kernel's structure-of-arrays layout) and merging them
     are one jitted call each and stay on the device; the one value read back per level is
     whether any child has a second lobe (it picks the cheaper kernel for one-lobe levels).
@@ -645,7 +658,7 @@ def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: in
     hh, ww = -(-h // 2), -(-w // 2)
     one_lobe = not bool(jnp.any(level.weight))   # e.g. level 0 of a fit: the cheaper kernel
     pieces = [_em_blocks_jit(lobes, rho_d, order, iterations, tol, 2)
-              for lobes, rho_d in _split_level(level, _bucket(hh * ww, chunk), one_lobe)]   # dispatched asynchronously
+              for lobes, rho_d in _split_level(level, _chunk_size(hh * ww, chunk), one_lobe)]   # dispatched asynchronously
     return _merge_level(tuple(pieces), hh, ww)
 
 
