@@ -606,7 +606,7 @@ def moment_matched_texels(children: BTFTexel, *, order: int = DEFAULT_ORDER) -> 
     return _em_batch(children, order, 0, None, 1)[0]
 
 
-_CHUNK_SIZES = (16, 256, 1024, 4096, 65536)  # the kernel shapes levels are cut into (a few, shared by all levels)
+_CHUNK_SIZES = (16, 256, 4096, 65536)  # the kernel shapes levels are cut into (a few, shared by all levels)
 _CALL_COST = 300  # the fixed cost of one kernel call, in texels of work (~0.15 ms on a 2-core CPU)
 
 
@@ -641,14 +641,13 @@ def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: in
                   tol: float | None = None, chunk: int = 4096) -> tuple[BTFTexel, EMInfo]:
     """The next pyramid level of an `H W` BTFTexel level: `ceil(H/2) ceil(W/2)`.
 
-    Texels are processed in chunks of a few fixed sizes (16, 256, 1024, 4096 texels, at most
-    `chunk`; the last chunk padded by repeating a texel), so that a whole pyramid reuses a few
-    compiled kernels; each level takes the size that costs it least, counting the fixed cost of a
-    kernel call (~300 texels of work) per chunk (e.g. 64 texels: one chunk of 256, not four of
-    16). The Python loop runs over chunks, never over texels, and dispatches them
-    asynchronously. Inside a chunk, blocks of 2048 texels are processed two at a time, and
-    inside them blocks of 256 texels run their EM loops, each until its own slowest texel has
-    converged (`_em_blocks`).
+    Texels are processed in chunks of a few fixed sizes (16, 256, 4096 texels, at most `chunk`;
+    the last chunk padded by repeating a texel), so that a whole pyramid reuses a few compiled
+    kernels; each level takes the size that costs it least, counting the fixed cost of a kernel
+    call (~300 texels of work) per chunk (e.g. 64 texels: one chunk of 256, not four of 16).
+    The Python loop runs over chunks, never over texels, and dispatches them asynchronously.
+    Inside a chunk, blocks of 2048 texels are processed two at a time, and inside them blocks of
+    256 texels run their EM loops, each until its own slowest texel has converged (`_em_blocks`).
     Splitting into chunks (already in the kernel's structure-of-arrays layout) and merging them
     are one jitted call each and stay on the device; the one value read back per level is
     whether any child has a second lobe (it picks the cheaper kernel for one-lobe levels).

@@ -150,17 +150,17 @@ def test_em_downsample_equals_em_texels_on_the_gathered_children():
 def test_chunk_size_counts_the_fixed_cost_of_a_kernel_call():
     # one call where it pays (64 texels: one padded chunk of 256, not four of 16), several where
     # the padding would cost more than the calls; never above `chunk`
-    assert [_chunk_size(n, 4096) for n in (1, 16, 64, 256, 1024, 4096, 16384)] == [16, 16, 256, 256, 1024, 4096, 4096]
+    assert [_chunk_size(n, 4096) for n in (1, 16, 64, 256, 1024, 4096, 16384)] == [16, 16, 256, 256, 256, 4096, 4096]
     assert _chunk_size(42, 16) == 16 and _chunk_size(5000, 256) == 256
 
 
 def test_em_downsample_chunk_sizes_agree_to_rounding():
-    """64x64 = 4096 texels as one chunk (two 2048-texel blocks computed side by side) or as four
-    1024-texel chunks (one block each): the same level up to float32 rounding (XLA vectorizes
-    each shape its own way), with the same one-or-two-lobe decisions."""
+    """64x64 = 4096 texels as one chunk (two 2048-texel blocks computed side by side) or as
+    sixteen 256-texel chunks: the same level up to float32 rounding (XLA vectorizes each shape
+    its own way), with the same one-or-two-lobe decisions."""
     level0 = BTFTexel.from_channels(_level0((128, 128), 5))
     whole, _ = em_downsample(level0)
-    parts, _ = em_downsample(level0, chunk=1024)
+    parts, _ = em_downsample(level0, chunk=256)
     np.testing.assert_array_equal(np.asarray(whole.weight) > 0, np.asarray(parts.weight) > 0)
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(parts)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=2e-6)
