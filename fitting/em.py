@@ -577,8 +577,11 @@ def _em_blocks(lobes, rho_d, order: int, iterations: int, tol: float | None, max
         # Two blocks per step with no data between them: XLA:CPU's thunk executor runs their
         # passes concurrently, which uses two cores better than splitting each pass (~9 % faster
         # on level 1 of the woven pyramid).
+        def two(pair):
+            outs = [kernel(jax.tree.map(lambda a: a[i], pair)) for i in range(2)]
+            return jax.tree.map(lambda *xs: jnp.stack(xs), *outs)
+
         pairs = jax.tree.map(lambda a: a.reshape((a.shape[0] // 2, 2) + a.shape[1:]), blocks)
-        two = lambda b: jax.tree.map(lambda *xs: jnp.stack(xs), *(kernel(jax.tree.map(lambda a: a[i], b)) for i in range(2)))  # noqa: E731
         out = jax.tree.map(lambda a: a.reshape((-1,) + a.shape[2:]), jax.lax.map(two, pairs))
     return jax.tree.map(lambda a: a.reshape((n,) + a.shape[2:]), out)
 
