@@ -1,0 +1,54 @@
+"""Headline rows of a benchmark as JSON, for `run_all.py` to rebuild RESULTS.md's summary table.
+
+API (one function):
+
+    from _results import write_results   # benchmarks/ is on sys.path when a script runs
+    write_results("desert_shadows", [
+        dict(issue="3 desert", target="horizon maps 256x256x8 >= 10x numpy",
+             measured="12.5x wall (10.7-12.9x) ...", status="met",
+             notes="peer: numba sweep, both pinned to core 0", figures={"ratio_median": 12.5}),
+    ], quick=args.quick)
+
+Each row needs `issue`, `target` (together they name the row of the summary table: keep them
+stable), `measured` (the text of the "measured" column) and `status` (the verdict: "met",
+"missed", ...); `notes` (text) and `figures` (numbers, for machines) are optional. The file
+`benchmarks/results/<name>.json` gets the rows plus the date, the command line and the machine
+load (`os.getloadavg`, the machine is shared) at the time of writing. With `quick=True`, or when
+the environment variable BENCH_NO_RESULTS is set (`run_all.py --quick` sets it), nothing is
+written: smoke runs never overwrite measured figures. Returns the path written, or None.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import sys
+from pathlib import Path
+
+RESULTS_DIR = Path(__file__).parent / "results"
+_REQUIRED = ("issue", "target", "measured", "status")
+
+
+def write_results(name: str, rows: list[dict], *, quick: bool = False) -> Path | None:
+    """Write `rows` (the script's headline rows, see the module docstring) to results/<name>.json."""
+    for row in rows:
+        missing = [k for k in _REQUIRED if not isinstance(row.get(k), str) or not row[k]]
+        if missing:
+            raise ValueError(f"{name}: result row {row!r} lacks text for {missing}")
+    if quick or os.environ.get("BENCH_NO_RESULTS"):
+        return None
+    record = {
+        "script": f"benchmarks/{name}.py",
+        "command": "python " + " ".join([f"benchmarks/{Path(sys.argv[0]).name}", *sys.argv[1:]]),
+        "date_utc": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M"),
+        "load_average_1_5_15": [round(x, 2) for x in os.getloadavg()],
+        "cpu_count": os.cpu_count(),
+        "rows": rows,
+    }
+    RESULTS_DIR.mkdir(exist_ok=True)
+    path = RESULTS_DIR / f"{name}.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(record, indent=1, ensure_ascii=False) + "\n")
+    tmp.replace(path)  # never a half-written file
+    return path
