@@ -2,21 +2,10 @@
 
 from __future__ import annotations
 
-import statistics
-import time
-
-import jax
+from jaxrender.timing import time_calls
 
 
 def timed(fn, repeats: int) -> tuple[float, float]:
-    """(seconds of the first call, compilation included; median seconds of `repeats` more calls),
-    each call waited for with `block_until_ready`."""
-    start = time.perf_counter()
-    jax.block_until_ready(fn())
-    compile_s = time.perf_counter() - start
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return compile_s, statistics.median(times)
+    """(seconds of the first call, compilation included; median seconds of `repeats` more calls)."""
+    _, timing = time_calls(fn, repeats)
+    return timing.compile_s, timing.median_s

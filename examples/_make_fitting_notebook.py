@@ -53,9 +53,9 @@ for c, (name, a, b) in enumerate(pairs):
         axes[r, c].set_title(f"{name} ({'truth' if r == 0 else 'fit'})", fontsize=9); axes[r, c].axis("off")
 fig.tight_layout()"""),
     nbf.v4.new_markdown_cell("## Relight under a light direction the capture did not contain"),
-    nbf.v4.new_code_cell("""from fitting.report import direction
+    nbf.v4.new_code_cell("""from fitting import direction_from_angles
 fitted = fitting.TexelFit(**{k: jnp.asarray(v) for k, v in maps.items()}).texel()
-wi, wo = direction(40.0, 100.0), np.array([0.0, 0.0, 1.0])
+wi, wo = direction_from_angles(40.0, 100.0), np.array([0.0, 0.0, 1.0])
 relit_true = np.asarray(fitting.relight(truth, wi, wo))
 relit_fit = np.asarray(fitting.relight(fitted, wi, wo))
 relight_err = float(np.linalg.norm(relit_fit - relit_true) / np.linalg.norm(relit_true))

@@ -2,6 +2,7 @@
 from .capture import Capture as Capture
 from .capture import CaptureError as CaptureError
 from .capture import load_capture as load_capture
+from .capture import direction_from_angles as direction_from_angles
 from .hdr import Observations as Observations
 from .hdr import merge_capture as merge_capture
 from .hdr import merge_exposures as merge_exposures

@@ -18,7 +18,8 @@ def run(args) -> int:
 
     from jaxrender.io import InputError, write_image
 
-    from .report import direction, relight
+    from .capture import direction_from_angles
+    from .report import relight
 
     out = Path(args.out)
     if out.suffix.lower() not in (".exr", ".png"):
@@ -27,7 +28,7 @@ def run(args) -> int:
         value = getattr(args, name)
         if not 0.0 <= value < 90.0:
             raise InputError(None, f"--{name.replace('_', '-')} {value} must be in [0, 90) degrees")
-    image = relight(args.btf_dir, direction(args.theta, args.phi), direction(args.view_theta, args.view_phi),
+    image = relight(args.btf_dir, direction_from_angles(args.theta, args.phi), direction_from_angles(args.view_theta, args.view_phi),
                     level=args.level)
     import numpy as np
 

@@ -25,7 +25,8 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
 
     from .fit import fit_maps
     from .lm import TexelFit
-    from .report import direction, relight
+    from .capture import direction_from_angles
+    from .report import relight
     from .synth import LIGHT_DIRECTIONS, stratified_light_subset, synth_maps, synth_observations
 
     out_dir = Path(out_dir)
@@ -58,7 +59,7 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
     lights = [(30.0, 0.0), (60.0, 135.0)]
     relit = []
     for theta, phi in lights:
-        wi = direction(theta, phi)
+        wi = direction_from_angles(theta, phi)
         a, b = np.asarray(relight(truth, wi, view)), np.asarray(relight(fitted, wi, view))
         relit.append((theta, phi, a, b, float(np.linalg.norm(a - b) / max(np.linalg.norm(a), 1e-12))))
         write_exr(out_dir / f"fitting_relit_t{int(theta)}_p{int(phi)}.exr", np.concatenate([a, b], axis=1))

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from jaxrender._math import dot, normalize
+from jaxrender.maths import dot, normalize
 from jaxrender.brdf import (COS_FLOOR, SIGMA_FLOOR, half_vector, slope_distribution_from_components, specular_factor,
                             tangent_frame)
 

@@ -84,9 +84,10 @@ def _is_number(x) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
-def _direction(theta_deg: float, phi_deg: float) -> np.ndarray:
-    t, p = math.radians(theta_deg), math.radians(phi_deg)
-    return np.array([math.sin(t) * math.cos(p), math.sin(t) * math.sin(p), math.cos(t)])
+def direction_from_angles(theta_deg, phi_deg) -> np.ndarray:
+    """Unit vector(s) from the sample toward a light/camera: (sin t cos p, sin t sin p, cos t)."""
+    t, p = np.radians(np.asarray(theta_deg, np.float64)), np.radians(np.asarray(phi_deg, np.float64))
+    return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], axis=-1)
 
 
 def _check_image(path: Path, size: tuple[int, int] | None, check_pixels: bool) -> tuple[list[str], tuple | None]:
@@ -267,7 +268,7 @@ def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, w
     angles = np.asarray(light_angles, float)
     return Capture(
         root=root.resolve(), size=size, response=response, exposures_s=tuple(float(e) for e in exposures),
-        view_angles=view, view_dir=_direction(*view), white_reflectance=white_refl,
+        view_angles=view, view_dir=direction_from_angles(*view), white_reflectance=white_refl,
         white_images=tuple(white_images), light_angles=angles,
-        light_dirs=np.stack([_direction(t, p) for t, p in angles]),
+        light_dirs=direction_from_angles(*np.asarray(angles, np.float64).reshape(-1, 2).T),
         light_images=tuple(tuple(images) for images in light_images), manifest=manifest)

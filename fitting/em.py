@@ -89,7 +89,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxrender._math import normalize, sum_short
+from jaxrender.maths import normalize, sum_short
 from jaxrender.brdf import SIGMA_FLOOR, BTFTexel, Lobe
 
 __all__ = ["GaussianMixture", "EMInfo", "em_fit", "weighted_log_likelihood", "moment_match", "lobe_slope_nodes",

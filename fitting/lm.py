@@ -44,7 +44,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxrender.brdf import MODELS, BTFTexel, reflectance, tangent_frame
-from jaxrender._math import normalize
+from jaxrender.maths import normalize
 
 from ._varpro import (RIDGE, S_MAX, S_MIN, Lights, columns, columns_from_frame, gauss_newton, geometry_to_theta,
                       lights_of, projected_cost_offset, theta_to_geometry)

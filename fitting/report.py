@@ -23,13 +23,9 @@ from jaxtyping import Array, Float
 from jaxrender.brdf import BTFTexel, reflectance
 from jaxrender.io import InputError, read_btf
 
-__all__ = ["relight", "direction", "load_btf_texels", "fit_report", "relight_errors"]
+from .capture import direction_from_angles
 
-
-def direction(theta_deg: float, phi_deg: float) -> np.ndarray:
-    """Unit vector (sin t cos p, sin t sin p, cos t) of the sample frame (design.md)."""
-    t, p = np.radians(theta_deg), np.radians(phi_deg)
-    return np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
+__all__ = ["relight", "load_btf_texels", "fit_report", "relight_errors"]
 
 
 def load_btf_texels(btf_dir: str | os.PathLike, *, level: int = 0) -> tuple[BTFTexel, str]:

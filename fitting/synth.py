@@ -26,8 +26,10 @@ import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from jaxrender.brdf import MODELS, BTFTexel, reflectance
+from jaxrender.maths import default_float
 from jaxrender.io import InputError, atomic_path, linear_to_srgb, write_btf, write_exr, write_png
 
+from .capture import direction_from_angles
 from .hdr import Observations, observations_from_batches, observe
 
 __all__ = ["EXPOSURES_S", "PAPER_THETAS_DEG", "PAPER_PHIS_DEG", "LIGHT_DIRECTIONS", "paper_light_angles",
@@ -44,12 +46,6 @@ def paper_light_angles() -> np.ndarray:
     """`2160 2` (theta_deg, phi_deg) of the paper's light directions, theta-major."""
     theta, phi = np.meshgrid(PAPER_THETAS_DEG, PAPER_PHIS_DEG, indexing="ij")
     return np.stack([theta.ravel(), phi.ravel()], axis=-1)
-
-
-def direction_from_angles(theta_deg, phi_deg) -> np.ndarray:
-    """Unit vector(s) from the sample toward a light/camera: (sin t cos p, sin t sin p, cos t)."""
-    t, p = np.radians(np.asarray(theta_deg, np.float64)), np.radians(np.asarray(phi_deg, np.float64))
-    return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], axis=-1)
 
 
 def paper_light_directions() -> np.ndarray:
@@ -161,7 +157,7 @@ def synth_maps(key: PRNGKeyArray, size: tuple[int, int], *, thread: int | None =
 def _synth_maps(key: PRNGKeyArray, size: tuple[int, int], thread: int | None) -> BTFTexel:
     h, w = size
     p = int(thread) if thread is not None else max(3, round(min(h, w) / 8))
-    dtype = jnp.zeros(()).dtype  # float32, or float64 under jax_enable_x64
+    dtype = default_float()
     k_col, k_jit, k_motif = jax.random.split(key, 3)
     rows = jnp.arange(h)[:, None] * jnp.ones((1, w), int)
     cols = jnp.ones((h, 1), int) * jnp.arange(w)[None, :]

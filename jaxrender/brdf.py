@@ -23,7 +23,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._math import dot, normalize, safe_div
+from .maths import dot, normalize, safe_div
 
 __all__ = ["Lobe", "BTFTexel", "MODELS", "SIGMA_FLOOR", "COS_FLOOR", "tangent_frame", "slope_distribution",
            "slope_distribution_from_components", "specular_factor", "lobe_reflectance", "reflectance", "brdf", "half_vector", "diffuse_normal"]

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._math import dot, normalize
+from .maths import dot, normalize
 
 __all__ = ["Spheres", "Quads", "intersect_sphere", "intersect_quad", "cast_rays", "closest_hit",
            "occluded", "bounding_points", "hit_point"]

@@ -20,6 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from jaxrender.maths import default_float
+
 __all__ = ["ClothMesh", "ClothSprings", "cloth_springs", "cloth_energy", "simulate_cloth", "drape_cloth",
            "grid_triangles", "vertex_normals"]
 
@@ -158,7 +160,7 @@ def drape_cloth(*, rows: int = 40, cols: int = 32, width: float = 1.4, height: f
     Defaults: 1280 particles of 2 g (a 2.6 kg robe); springs stiff enough that the cloth
     stretches by a few percent on average under its weight.
     """
-    dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    dtype = default_float()
     u = np.linspace(0.0, 1.0, cols)
     v = np.linspace(0.0, 1.0, rows)
     vv, uu = np.meshgrid(v, u, indexing="ij")

@@ -19,6 +19,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
+from jaxrender.maths import default_float
+
 __all__ = ["permutation_table", "gradient_noise", "fbm", "turbulence", "fire_frames", "flame_colour"]
 
 _GRADIENTS = (
@@ -114,7 +116,7 @@ def fire_frames(key: PRNGKeyArray, *, frames: int = 20, height: int = 64, width:
     flame rises per loop; `scale` the number of noise cells across the flame's width.
     """
     perm = permutation_table(key)
-    dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    dtype = default_float()
     x = (jnp.arange(width, dtype=dtype) + 0.5) / width * 2 - 1          # -1 .. 1 across
     y = 1 - (jnp.arange(height, dtype=dtype) + 0.5) / height            # 0 at bottom, 1 at top
     yy, xx = jnp.meshgrid(y, x, indexing="ij")

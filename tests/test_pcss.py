@@ -9,7 +9,7 @@ import numpy as np
 
 from jaxrender.fabric import depth_map, raster_window, spot_pinhole
 from jaxrender.geometry import Quads
-from jaxrender.lights._spot import SpotLight
+from jaxrender.lights import SpotLight
 from jaxrender.shadows import ShadowMap, pcss, render_shadow_map, shadow_test
 
 _LIGHT = 0.4          # side of the square light (m)

@@ -119,7 +119,7 @@ ATAN_TOL = 2e-7  # Cephes atanf's polynomial: |error| < 2e-7 rad over x >= 0
 def test_atan_nonneg_value_and_derivative_match_numpy(jit):
     """The polynomial arctan against numpy's, and its (custom) derivative against central
     differences of numpy's arctan, over the range-reduction intervals and far out."""
-    from jaxrender.lights._spot import atan_nonneg
+    from jaxrender.maths import atan_nonneg
 
     x = np.concatenate([np.linspace(0.0, 3.0, 301), np.geomspace(3.0, 1e4, 50)])
     f = jax.jit(atan_nonneg) if jit else atan_nonneg

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .._math import normalize
+from ..maths import normalize
 
 __all__ = ["Pinhole", "GBuffer", "camera_pinhole", "spot_pinhole", "raster_window", "rasterize", "depth_map"]
 

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .._math import dot, normalize
+from ..maths import dot, normalize
 from ..brdf import BTFTexel, lobe_reflectance, reflectance
 
 __all__ = ["MaterialSet", "stack_materials", "mip_level", "lookup_texels", "shade_samples", "shade_single_lobe",

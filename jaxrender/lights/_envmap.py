@@ -39,18 +39,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
-from .._math import normalize
+from ..io import InputError, luminance, read_image
+from ..maths import normalize
 
 __all__ = ["EnvMap", "EnvSamples", "envmap_uv", "envmap_direction", "load_envmap", "env_radiance",
            "env_pdf", "sample_envmap", "env_texel_solid_angles"]
-
-_LUMA = (0.2126, 0.7152, 0.0722)  # Rec. 709 / sRGB primaries, as jaxrender.io.luminance
-
-
-def _luminance(rgb: Array) -> Array:
-    w = jnp.asarray(_LUMA, dtype=rgb.dtype)
-    return jnp.sum(rgb * jnp.reshape(w, (1,) * (rgb.ndim - 1) + (3,)), axis=-1)
-
 
 def envmap_uv(direction: Float[ArrayLike, "... 3"]) -> Float[Array, "... 2"]:
     """Mitsuba `envmap` (u, v) of a world direction (normalised here)."""
@@ -93,7 +86,7 @@ class EnvMap(eqx.Module):
         if rad.ndim != 3 or rad.shape[-1] != 3 or rad.shape[0] < 1 or rad.shape[1] < 1:
             raise ValueError(f"environment radiance must be H x W x 3, got {rad.shape}")
         h, w = rad.shape[0], rad.shape[1]
-        lum = jnp.maximum(_luminance(rad), 0.0)
+        lum = jnp.maximum(luminance(rad), 0.0)
         omega = env_texel_solid_angles(h, w, dtype=rad.dtype)
         weights = (lum * omega[:, None]).reshape(-1)
         total = jnp.sum(weights)
@@ -113,8 +106,6 @@ def load_envmap(path: str | os.PathLike, *, scale: float = 1.0) -> EnvMap:
     Raises `InputError` naming the file for an unreadable file, a wrong shape, or non-finite or
     negative radiance.
     """
-    from ..io import InputError, read_image
-
     img = np.asarray(read_image(path))
     if img.ndim == 2:
         img = img[..., None]
@@ -167,7 +158,7 @@ def env_radiance(env: EnvMap, direction: Float[ArrayLike, "... 3"], *, filter: s
 def env_pdf(env: EnvMap, direction: Float[ArrayLike, "... 3"]) -> Float[Array, "..."]:
     """Solid-angle pdf (1/sr) with which `sample_envmap` draws `direction`."""
     j, i = _texel_index(env, envmap_uv(direction))
-    lum = jnp.maximum(_luminance(env.radiance[j, i]), 0.0)
+    lum = jnp.maximum(luminance(env.radiance[j, i]), 0.0)
     return jnp.where(env.uniform > 0, env.pdf_scale, lum * env.pdf_scale)
 
 
@@ -195,6 +186,6 @@ def sample_envmap(env: EnvMap, key: PRNGKeyArray, k: int = 20) -> EnvSamples:
     sin_t = jnp.sqrt(jnp.maximum(1 - cos_t * cos_t, 0.0))
     d = jnp.stack([sin_t * jnp.sin(phi), cos_t, -sin_t * jnp.cos(phi)], axis=-1)
     rad = env.radiance[j, i]
-    lum = jnp.maximum(_luminance(rad), 0.0)
+    lum = jnp.maximum(luminance(rad), 0.0)
     pdf = jnp.where(env.uniform > 0, env.pdf_scale, lum * env.pdf_scale)
     return EnvSamples(d, rad, pdf)

@@ -19,12 +19,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from .._math import normalize
+from ..io import luminance
+from ..maths import normalize
 
 __all__ = ["QuadLights", "QuadLightSamples", "sample_quad_lights", "quad_light_radiance_at"]
-
-_LUMA = (0.2126, 0.7152, 0.0722)
-
 
 class QuadLights(eqx.Module):
     center: Float[Array, "F 3"]
@@ -54,8 +52,7 @@ def sample_quad_lights(lights: QuadLights, key: PRNGKeyArray, k: int = 20) -> Qu
     """Draw `k` points over all quads by emitted power (module docstring)."""
     f, h, w = lights.emission.shape[0], lights.emission.shape[1], lights.emission.shape[2]
     e = lights.emission
-    luma = jnp.asarray(_LUMA, dtype=e.dtype)
-    lum = jnp.maximum(jnp.sum(e * jnp.reshape(luma, (1, 1, 1, 3)), axis=-1), 0.0)       # F H W
+    lum = jnp.maximum(luminance(e), 0.0)                                                  # F H W
     texel_area = lights.area / (h * w)                                                    # F
     power = (lum * texel_area[:, None, None]).reshape(-1)
     total = jnp.sum(power)

@@ -20,8 +20,8 @@ import numpy as np
 from ..camera import Camera
 from ..geometry import Quads, Spheres
 from ..io import InputError, read_image
-from ..lights._spot import SpotLight
-from ..shafts._scene import Medium, RenderSettings, ShaftsScene
+from ..lights import SpotLight
+from ..shafts import Medium, RenderSettings, ShaftsScene
 
 __all__ = ["load_shafts_scene", "shafts_scene_from_dict", "ShaftsSceneWarning", "RENDER_DEFAULTS"]
 

@@ -20,11 +20,11 @@ from jaxtyping import Array, Float
 
 from ..camera import Camera
 from ..io import tonemap, write_exr, write_png
-from ..lights._sun import Sun, sun_direction
+from ..lights import Sun, sun_direction
 from ..shadows import heightfield_shadow
 from ..sky import Atmosphere, optical_depth, sky_radiance
 from ..terrain import TerrainMaps, build_terrain_maps, plan_quads, quad_capacities, render_terrain, shadow_steps
-from ..terrain._dust import DustParticles, composite_billboards
+from ..terrain import DustParticles, composite_billboards
 from ..textures import bilinear
 
 __all__ = ["DesertScene", "desert_scene", "default_camera", "render_desert", "desert_frame", "gallery_section",

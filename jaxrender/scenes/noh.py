@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from .._math import normalize
+from ..maths import normalize
 from ..brdf import BTFTexel, Lobe
 from ..camera import Camera
 from ..fabric import (MaterialSet, camera_pinhole, depth_map, raster_window, rasterize, shade_fabric, shade_single_lobe,

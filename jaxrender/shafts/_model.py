@@ -16,9 +16,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._math import safe_norm
+from ..maths import safe_norm
 from ..geometry import bounding_points, cast_rays
-from ..lights._spot import SpotLight
+from ..lights import SpotLight
 from ._scene import ShaftsScene
 
 S_FLOOR = 1e-6  # smallest light distance used in 1/s^2 (a sample exactly at the light)

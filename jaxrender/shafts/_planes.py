@@ -41,10 +41,10 @@ from jax.ad_checkpoint import checkpoint_name
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._math import outer, safe_norm, sum_short
+from ..maths import outer, safe_norm, sum_short
 from ..geometry import cast_rays, hit_point
-from ..shadows._shadow_map import ShadowMap, render_shadow_map, shadow_test
-from ..lights._spot import atan_nonneg
+from ..shadows import ShadowMap, render_shadow_map, shadow_test
+from ..maths import atan_nonneg
 from ..textures import bilinear, quantize
 from ._model import FAR, S_FLOOR, attenuation_h, cone_depth_range, cone_intervals, light_reach, phase_cos, surface_term
 from ._raymarch import shadow_ray_visibility

@@ -8,7 +8,7 @@ from jaxtyping import Array, Float
 
 from ..camera import Camera
 from ..geometry import Quads, Spheres
-from ..lights._spot import SpotLight, unstack_spotlights
+from ..lights import SpotLight, unstack_spotlights
 
 
 class Medium(eqx.Module):

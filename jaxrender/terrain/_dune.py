@@ -7,8 +7,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._math import normalize
-from ..shadows._heightfield import triangle_height
+from ..maths import normalize
+from ..shadows import triangle_height
 
 __all__ = ["close_periodic", "vertex_normals", "ray_cast_heightfield"]
 

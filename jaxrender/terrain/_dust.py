@@ -9,8 +9,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ..camera import Camera
-from ..lights._sun import Sun
-from ..shadows._heightfield import triangle_height
+from ..lights import Sun
+from ..shadows import triangle_height
 
 __all__ = ["DustParticles", "dust_particles", "composite_billboards", "billboard_alpha"]
 

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._math import normalize
+from ..maths import normalize
 
 __all__ = ["sand_grain_texture"]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._math import normalize
+from ..maths import normalize
 from ..textures import downsample2
 
 __all__ = ["ripple_normal_map", "normal_pyramid"]

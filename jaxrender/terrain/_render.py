@@ -25,11 +25,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._math import normalize
+from ..maths import normalize
 from ..camera import Camera
-from ..lights._sun import Sun
-from ..shadows._heightfield import heightfield_light, triangle_height
-from ..shadows._horizon import horizon_band, horizon_light, horizon_map
+from ..lights import Sun
+from ..shadows import heightfield_light, triangle_height
+from ..shadows import horizon_band, horizon_light, horizon_map
 from ..textures import bilinear, downsample2
 from ._dune import close_periodic, ray_cast_coherent, vertex_normals
 from ._grain import sand_grain_texture

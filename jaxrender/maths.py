@@ -1,4 +1,5 @@
-"""Gradient-safe vector maths shared by every kernel (no NaN gradients at zero length)."""
+"""Maths shared by every kernel: gradient-safe vector operations (no NaN gradients at zero length),
+fast vectorizable arctan, short-axis sums, and the default float dtype."""
 
 from __future__ import annotations
 
@@ -7,6 +8,11 @@ import functools
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
+
+
+def default_float() -> jnp.dtype:
+    """float32, or float64 when `jax_enable_x64` is on: the dtype kernels create arrays in."""
+    return jnp.dtype(jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
 
 
 def safe_norm(x: Float[ArrayLike, "... 3"], *, eps: float = 1e-12) -> Float[Array, "..."]:
@@ -63,3 +69,28 @@ def sum_short(a: ArrayLike, axis: int | tuple[int, ...]) -> Array:
         else:
             a = jnp.sum(a, axis=ax)
     return a
+
+
+@jax.custom_jvp
+def atan_nonneg(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
+    """arctan(x) for x >= 0 as vectorizable polynomial arithmetic (Cephes `atanf`: range reduction
+    to |x| <= tan(pi/8) and a degree-9 odd polynomial; |error| < 2e-7). XLA's CPU arctan2 is a
+    scalar libm call per element (~50 ns), this is a few fused flops. Its derivative is arctan's,
+    1 / (1 + x^2) (a custom JVP: differentiating the range reduction and the polynomial cost ~1.3x
+    a light-shaft frame in reverse mode; the two derivatives differ by ~1e-6)."""
+    x = jnp.asarray(x)
+    big = x > 2.414213562373095
+    mid = (x > 0.41421356237309503) & ~big
+    safe_big = jnp.where(big, x, 1.0)
+    xr = jnp.where(big, -1.0 / safe_big, jnp.where(mid, (x - 1.0) / (x + 1.0), x))
+    y0 = jnp.where(big, 0.5 * jnp.pi, jnp.where(mid, 0.25 * jnp.pi, 0.0))
+    z = xr * xr
+    poly = (((8.05374449538e-2 * z - 1.38776856032e-1) * z + 1.99777106478e-1) * z - 3.33329491539e-1) * z
+    return (y0 + (xr + xr * poly)).astype(x.dtype)
+
+
+@atan_nonneg.defjvp
+def _atan_nonneg_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    x = jnp.asarray(x)
+    return atan_nonneg(x), dx / (1.0 + x * x)
