@@ -1,7 +1,7 @@
 """Shared pieces of the light-shaft benchmarks (paper 000, section 5): scenes, timing, display levels.
 
 Scenes are dicts in the scene-file contract of design.md, so that the same dict can be rendered by
-our renderer (`jaxrender.scenes.shafts_scene_from_dict`) and by Mitsuba 3 (`tests/mitsuba_scene.py`).
+our renderer (`jaxrender.app.scenes.shafts_scene_from_dict`) and by Mitsuba 3 (`tests/mitsuba_scene.py`).
 """
 
 from __future__ import annotations
@@ -121,7 +121,7 @@ def stage_scene(lights: int = 5, width: int = PAPER_W, height: int = PAPER_H, *,
 
 
 def load(scene: dict, base_dir: Path | None = None):
-    from jaxrender.scenes import shafts_scene_from_dict
+    from jaxrender.app.scenes import shafts_scene_from_dict
 
     return shafts_scene_from_dict(scene, base_dir=base_dir if base_dir is not None else Path(tempfile.gettempdir()))
 

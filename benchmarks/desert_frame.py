@@ -15,7 +15,7 @@ import jax
 
 from jaxrender.io import write_png
 from _timing import timed  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
-from jaxrender.scenes import desert as D
+from jaxrender.app.scenes import desert as D
 
 FIG = Path(__file__).parent / "figures"
 

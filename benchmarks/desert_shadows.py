@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from _timing import timed  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
-from jaxrender.scenes import desert as D
+from jaxrender.app.scenes import desert as D
 from jaxrender.shadows import horizon_directions, horizon_map
 
 FIG = Path(__file__).parent / "figures"

@@ -38,7 +38,7 @@ def main() -> None:
     width, height = (360, 240) if args.quick else (720, 480)
     repeats = args.repeats or (5 if args.quick else 7)
 
-    from jaxrender.scenes import noh
+    from jaxrender.app.scenes import noh
 
     t = time.perf_counter()
     btfs = noh.default_btfs(size=32, pyramid="em")
@@ -56,7 +56,7 @@ def main() -> None:
         jax.block_until_ready(noh.prepare_noh(scene, key=jax.random.key(1)))
         static.append(time.perf_counter() - t)
 
-    frame = noh._noh_frame_jit
+    frame = noh.noh_frame_jit
     t = time.perf_counter()
     jax.block_until_ready(frame(scene, prep, scene.flames[:, 0], jax.random.key(0)))
     frame_compile_s = time.perf_counter() - t
@@ -77,13 +77,13 @@ def main() -> None:
 
     out = Path(__file__).resolve().parent / "figures" / ("noh_frame_quick.png" if args.quick else "noh_frame.png")
     out.parent.mkdir(exist_ok=True)
-    lum = np.asarray(last).reshape(-1, 3)[np.asarray(prep.g_index)] @ np.asarray([0.2126, 0.7152, 0.0722], np.float32)
+    lum = np.asarray(last).reshape(-1, 3)[np.asarray(prep.garment.index)] @ np.asarray([0.2126, 0.7152, 0.0722], np.float32)
     write_png(out, noh.tonemap_frames(np.asarray(last)[None], exposure=0.3 / float(np.percentile(lum, 90)))[0])
 
     frame_med, static_med = statistics.median(frames), statistics.median(static)
     rows = [
         ("resolution", f"{width}x{height}"),
-        ("garment / floor pixels", f"{prep.g_pos.shape[0]} / {prep.f_pos.shape[0]}"),
+        ("garment / floor pixels", f"{prep.garment.position.shape[0]} / {prep.floor.position.shape[0]}"),
         ("K_env + K_fire, lobes", "20 + 20, 2 (EM levels; brocade levels 1.. two-lobe fraction "
                                   f"{two_lobe:.2f})"),
         ("scene setup (cloth sim, sky, flames, EM pyramids; incl. compile) s", f"{setup_s:.2f}"),

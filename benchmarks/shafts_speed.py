@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from _timing import timed  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
-from jaxrender.scenes import load_shafts_scene  # noqa: E402
+from jaxrender.app.scenes import load_shafts_scene  # noqa: E402
 from jaxrender.shafts import render_planes, render_raymarch  # noqa: E402
 
 TARGET_ERR = 0.02

@@ -21,9 +21,10 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxrender.brdf import BTFTexel, reflectance
-from jaxrender.io import InputError, read_btf
+from jaxrender.io import InputError, atomic_path, linear_to_srgb, read_btf
 
-from .capture import direction_from_angles
+from .capture import load_capture
+from .hdr import merge_capture
 
 __all__ = ["relight", "load_btf_texels", "fit_report", "relight_errors"]
 
@@ -111,11 +112,6 @@ def fit_report(capture_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, ou
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from jaxrender.io import atomic_path
-
-    from .capture import load_capture
-    from .hdr import merge_capture
-
     capture = load_capture(capture_dir)
     texels, model = load_btf_texels(btf_dir)
     if obs is None:
@@ -143,8 +139,6 @@ def fit_report(capture_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, ou
 
     def rgb(name):
         return np.stack([level0[f"{name}.{c}"] for c in "RGB"], -1)
-
-    from jaxrender.io import linear_to_srgb
 
     panels = [("rho_d", np.asarray(linear_to_srgb(np.clip(rgb("rho_d"), 0, 1)))),
               ("rho_s (scaled)", np.clip(rgb("rho_s") / max(np.percentile(rgb("rho_s"), 99), 1e-6), 0, 1)),

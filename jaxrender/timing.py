@@ -24,14 +24,14 @@ class Timing:
         return statistics.median(self.runs_s) if self.runs_s else math.nan
 
 
-def time_calls(fn: Callable[[], Any], repeats: int) -> tuple[Any, Timing]:
-    """Call `fn()` once, then `repeats` more times; (the first call's result, the timing)."""
+def timed_call(fn: Callable[[], Any]) -> tuple[Any, float]:
+    """(fn()'s result, waited for; the seconds it took)."""
     start = time.perf_counter()
     result = jax.block_until_ready(fn())
-    compile_s = time.perf_counter() - start
-    runs = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        runs.append(time.perf_counter() - start)
-    return result, Timing(compile_s, tuple(runs))
+    return result, time.perf_counter() - start
+
+
+def time_calls(fn: Callable[[], Any], repeats: int) -> tuple[Any, Timing]:
+    """Call `fn()` once, then `repeats` more times; (the first call's result, the timing)."""
+    result, compile_s = timed_call(fn)
+    return result, Timing(compile_s, tuple(timed_call(fn)[1] for _ in range(repeats)))

@@ -15,6 +15,7 @@ from .ripples import power_spectrum_along as power_spectrum_along
 from .ripples import ripple_step as ripple_step
 from .ripples import simulate_ripples as simulate_ripples
 from .ripples import spectral_centroid_wavelength as spectral_centroid_wavelength
+from ._fields import FIELD_SUFFIXES as FIELD_SUFFIXES
 from ._fields import load_field as load_field
 from ._fields import preview_image as preview_image
 from ._fields import save_field as save_field

@@ -9,14 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxrender.io import InputError, atomic_path, read_exr, write_exr
+
 FIELD_SUFFIXES = (".npy", ".exr")
 
 
 def load_field(path: str | os.PathLike) -> np.ndarray:
     """A height field from .npy (2-D float array) or .exr (channel `height`, `Y`, or the only
     one), as float32 `H W`; bad files raise `InputError` naming the file and the problem."""
-    from jaxrender.io import InputError, read_exr
-
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in FIELD_SUFFIXES:
@@ -52,8 +52,6 @@ def load_field(path: str | os.PathLike) -> np.ndarray:
 
 def save_field(path: str | os.PathLike, field) -> Path:
     """Write `H W` heights atomically: .npy (float32) or .exr (channel `height`)."""
-    from jaxrender.io import InputError, atomic_path, write_exr
-
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in FIELD_SUFFIXES:

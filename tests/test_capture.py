@@ -160,7 +160,7 @@ def test_every_problem_is_reported_at_once(tmp_path):
 
 def test_fit_cli_prints_every_problem_and_exits_2(tmp_path, capsys):
     """Through the command line: all problems, one line each, exit code 2, nothing written."""
-    from fitting.cli import main as fitting_main
+    from jaxrender.app.cli.programs import fitting_main
 
     make_capture(tmp_path / "capture")
     edit_manifest(tmp_path / "capture", lambda m: (m["lights"][1].update(theta_deg=90), m["white"]["images"].pop()))

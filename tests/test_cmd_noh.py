@@ -2,7 +2,7 @@
 
 import pytest
 
-from jaxrender.cli import main
+from jaxrender.app.cli.programs import jaxrender_main as main
 
 
 @pytest.mark.parametrize("extra, needle", [

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxrender.camera import Camera
-from jaxrender.scenes.desert import desert_frame, desert_scene, to_display
+from jaxrender.app.scenes.desert import desert_frame, desert_scene, to_display
 from jaxrender.shadows import triangle_height
 from jaxrender.terrain import (billboard_alpha, normal_pyramid, plan_quads, quad_capacities, ray_cast_coherent,
                                ray_cast_heightfield, ripple_normal_map, sand_grain_texture)
@@ -111,7 +111,7 @@ def test_culling_removes_quads_and_keeps_image(small_desert):
 
 
 def test_cli_bad_input_exits_2(tmp_path, capsys):
-    from jaxrender.cli import main
+    from jaxrender.app.cli.programs import jaxrender_main as main
 
     assert main(["desert", "--out", str(tmp_path / "frame.txt")]) == 2
     assert "frame.txt" in capsys.readouterr().err

@@ -5,8 +5,9 @@ import types
 
 import numpy as np
 
-from jaxrender import gallery, io
-from jaxrender.cli import main
+from jaxrender import io
+from jaxrender.app import gallery
+from jaxrender.app.cli.programs import jaxrender_main as main
 
 
 def _fake_section(out_dir, *, quick=False):

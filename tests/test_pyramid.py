@@ -9,10 +9,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fitting import cli
 from fitting.em import _chunk_size, em_downsample, em_texels, gather_children, mip_texel, moment_matched_texels
 from fitting.pyramid import build_pyramid, pyramid_levels
 from jaxrender import brdf
+from jaxrender.app.cli.programs import fitting_main
 from jaxrender.brdf import BTFTexel, reflectance
 from jaxrender.io import LOBE_CHANNELS, read_btf, write_btf
 
@@ -193,20 +193,20 @@ def test_build_pyramid_writes_every_channel_on_every_level_and_btf_json_last(tmp
 def test_pyramid_cli_levels_and_bad_input(tmp_path, capsys):
     btf_dir = tmp_path / "btf"
     write_btf(btf_dir, [_level0((5, 6), 2)], model="paper")
-    assert cli.main(["pyramid", str(btf_dir)]) == 0
-    assert cli.main(["pyramid", str(btf_dir), "--levels", "2"]) == 0
+    assert fitting_main(["pyramid", str(btf_dir)]) == 0
+    assert fitting_main(["pyramid", str(btf_dir), "--levels", "2"]) == 0
     manifest = json.loads((btf_dir / "btf.json").read_text())
     assert [tuple(e["size"]) for e in manifest["levels"]] == [(5, 6), (3, 3)] and manifest["model"] == "paper"
     assert sorted(p.name for p in btf_dir.glob("level_*.exr")) == ["level_00.exr", "level_01.exr"]
-    assert cli.main(["pyramid", str(btf_dir), "--levels", "1"]) == 0  # level 0 only: no coarse level
+    assert fitting_main(["pyramid", str(btf_dir), "--levels", "1"]) == 0  # level 0 only: no coarse level
     manifest = json.loads((btf_dir / "btf.json").read_text())
     assert [tuple(e["size"]) for e in manifest["levels"]] == [(5, 6)] and manifest["pyramid"]["levels"] == []
     assert sorted(p.name for p in btf_dir.glob("level_*.exr")) == ["level_00.exr"]
     capsys.readouterr()
     (btf_dir / "btf.json").unlink()  # an incomplete directory
-    assert cli.main(["pyramid", str(btf_dir)]) == 2
+    assert fitting_main(["pyramid", str(btf_dir)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "btf.json" in err
     assert not (btf_dir / "btf.json").exists()  # no partial output made to look complete
-    assert cli.main(["pyramid", str(tmp_path / "missing")]) == 2
-    assert cli.main(["pyramid", str(tmp_path), "--levels", "0"]) == 2
+    assert fitting_main(["pyramid", str(tmp_path / "missing")]) == 2
+    assert fitting_main(["pyramid", str(tmp_path), "--levels", "0"]) == 2

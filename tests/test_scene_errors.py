@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxrender.cli import main
+from jaxrender.app.cli.programs import jaxrender_main as main
 from jaxrender.io import InputError, read_image, write_png
-from jaxrender.scenes import ShaftsSceneWarning, load_shafts_scene, shafts_scene_from_dict
+from jaxrender.app.scenes import ShaftsSceneWarning, load_shafts_scene, shafts_scene_from_dict
 
 _SCENE = {
     "camera": {"eye": [0, 1.5, 6], "target": [0, 1, 0], "up": [0, 1, 0], "fov_y_deg": 40, "width": 8, "height": 6},

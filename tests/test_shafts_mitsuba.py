@@ -121,7 +121,7 @@ _PLANES = eqx.filter_jit(_render_planes)
 @functools.cache
 def _ours(method: str, fog: bool, base_dir: Path) -> np.ndarray:
     """Our render, supersampled _SS x _SS per pixel and box-averaged like Mitsuba's film."""
-    from jaxrender.scenes import shafts_scene_from_dict
+    from jaxrender.app.scenes import shafts_scene_from_dict
 
     scene = shafts_scene_from_dict(_scene_dict(fog=fog), base_dir=base_dir).with_size(_W * _SS, _H * _SS)
     img = np.asarray((_RAYMARCH if method == "raymarch" else _PLANES)(scene), dtype=np.float64)

@@ -163,7 +163,7 @@ def test_observations_match_the_model():
 
 
 def test_cli_synth_bad_input_exit_2_and_no_output(tmp_path, capsys, monkeypatch):
-    from fitting.cli import main as fitting_main
+    from jaxrender.app.cli.programs import fitting_main
     from jaxrender.io import write_png
 
     occupied = tmp_path / "occupied"
@@ -198,7 +198,7 @@ def test_cli_synth_bad_input_exit_2_and_no_output(tmp_path, capsys, monkeypatch)
 def test_cli_exr_capture_and_srgb_response(tmp_path):
     """`fitting synth --format exr` writes linear float codes that merge like the in-memory
     float camera; an sRGB-encoded 8-bit camera merges to the model like the linear one."""
-    from fitting.cli import main as fitting_main
+    from jaxrender.app.cli.programs import fitting_main
 
     out = tmp_path / "exr"
     assert fitting_main(["synth", str(out), "--size", str(SIZE[0]), str(SIZE[1]), "--lights", str(N_LIGHTS),

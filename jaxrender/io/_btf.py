@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ._atomic import atomic_path
-from ._errors import InputError
+from ..errors import InputError
 from ._images import read_exr, write_exr, write_png
 
 __all__ = ["BTF_FORMAT", "BTF_VERSION", "BTF_MODELS", "LOBE_CHANNELS", "LEVEL0_CHANNELS", "BTF_UNITS",

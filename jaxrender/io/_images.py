@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from ._atomic import atomic_path
-from ._color import linear_to_srgb, srgb_to_linear
-from ._errors import InputError
+from ._color import linear_to_srgb, srgb_to_linear, tonemap
+from ..errors import InputError
 
 _EXR_RGB = ("R", "G", "B")
 
@@ -154,8 +154,6 @@ def write_png(path: str | os.PathLike, image: np.ndarray, *, srgb: bool = True, 
 
 def write_image(path: str | os.PathLike, image: np.ndarray, *, exposure: float = 1.0) -> Path:
     """Write linear radiance: EXR as is, PNG tone-mapped (`tonemap`, ACES) for viewing."""
-    from ._color import tonemap
-
     path = Path(path)
     if path.suffix.lower() == ".exr":
         return write_exr(path, image)

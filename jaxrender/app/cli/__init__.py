@@ -1,0 +1,1 @@
+"""The command lines `jaxrender`, `fitting` and `sims` (`programs`), one module per subcommand."""

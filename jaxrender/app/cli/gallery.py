@@ -1,0 +1,25 @@
+"""`jaxrender gallery --out DIR`: the main job."""
+
+from __future__ import annotations
+
+from jaxrender.errors import InputError
+
+from ..gallery import SECTIONS, render_gallery
+
+
+def configure(parser):
+    parser.add_argument("--out", required=True, help="output directory (index.html, PNG, EXR)")
+    parser.add_argument("--only", default=None,
+                        help=f"comma-separated sections to render (default all: {','.join(SECTIONS)})")
+    parser.add_argument("--quick", action="store_true", help="small sizes (about a minute per section)")
+
+
+def run(args) -> int:
+    sections = None if args.only is None else [s.strip() for s in args.only.split(",") if s.strip()]
+    unknown = [s for s in sections or [] if s not in SECTIONS]
+    if unknown:
+        raise InputError(None, f"--only: unknown sections {unknown}; choose from {list(SECTIONS)}")
+    result = render_gallery(args.out, sections=sections, quick=args.quick)
+    failed = [name for name, s in result["sections"].items() if s["error"]]
+    print(f"gallery written to {args.out}/index.html" + (f" (FAILED sections: {', '.join(failed)})" if failed else ""))
+    return 1 if failed else 0

@@ -1,0 +1,117 @@
+"""The gallery: the three showcase scenes and a BTF fit, rendered on built-in defaults into
+PNG/EXR files and one `index.html` that shows them with their parameters and timings.
+
+Each showcase provides `gallery_section(out_dir, *, quick=False) -> list[dict]`; an entry is
+{"title", "images" (paths relative to out_dir), "caption", "params", "timings"}.
+"""
+
+from __future__ import annotations
+
+import html
+import importlib
+import json
+import platform
+import time
+import traceback
+from pathlib import Path
+
+from jaxrender.io import atomic_path
+
+SECTIONS = {
+    "stage": ("jaxrender.app.gallery.stage", "Light shafts on a stage (paper 000)"),
+    "desert": ("jaxrender.app.gallery.desert", "Desert dunes with wind ripples (paper 001)"),
+    "fit": ("jaxrender.app.gallery.fit", "Fitting a BTF to a synthetic multi-light capture (paper 004)"),
+    "noh": ("jaxrender.app.gallery.noh", "Woven fabric under dusk sky and firelight (paper 004)"),
+}
+
+
+def render_gallery(out_dir: str | Path, *, sections: list[str] | None = None, quick: bool = False,
+                   log=print) -> dict:
+    """Render the chosen sections (all by default) into `out_dir`; write `index.html` last.
+
+    Returns {"sections": {name: {"entries": [...], "seconds": float, "error": str | None}}}.
+    A section that fails is reported on the page (with its traceback) and in the result; the
+    others still render.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = list(SECTIONS) if sections is None else sections
+    unknown = [n for n in names if n not in SECTIONS]
+    if unknown:
+        raise ValueError(f"unknown gallery sections {unknown}; choose from {list(SECTIONS)}")
+    result = {"sections": {}, "quick": quick}
+    for name in names:
+        module_name, heading = SECTIONS[name]
+        log(f"[gallery] {name}: {heading} ...")
+        start = time.perf_counter()
+        try:
+            module = importlib.import_module(module_name)
+            entries = module.gallery_section(out_dir / name, quick=quick)
+            for entry in entries:  # entry image paths are relative to the section folder
+                entry["images"] = [f"{name}/{p}" for p in entry.get("images", [])]
+            error = None
+        except Exception:  # a broken section must not hide the others
+            entries, error = [], traceback.format_exc()
+            log(f"[gallery] {name} FAILED:\n{error}")
+        seconds = time.perf_counter() - start
+        log(f"[gallery] {name}: {len(entries)} entries in {seconds:.1f} s")
+        result["sections"][name] = {"heading": heading, "entries": entries, "seconds": seconds, "error": error}
+    with atomic_path(out_dir / "index.html") as tmp:
+        tmp.write_text(_page(result))
+    with atomic_path(out_dir / "gallery.json") as tmp:
+        tmp.write_text(json.dumps(result, indent=2, default=str))
+    return result
+
+
+def _table(values: dict) -> str:
+    if not values:
+        return ""
+    rows = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(_fmt(v))}</td></tr>" for k, v in values.items())
+    return f"<table>{rows}</table>"
+
+
+def _fmt(value) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def _page(result: dict) -> str:
+    parts = []
+    for name, section in result["sections"].items():
+        parts.append(f'<section id="{name}"><h2>{html.escape(section["heading"])}</h2>'
+                     f'<p class="meta">section time {section["seconds"]:.1f} s</p>')
+        if section["error"]:
+            parts.append(f'<pre class="error">{html.escape(section["error"])}</pre>')
+        for entry in section["entries"]:
+            images = "".join(
+                f'<a href="{html.escape(p)}"><img src="{html.escape(p)}" alt="{html.escape(entry.get("title", ""))}"></a>'
+                for p in entry.get("images", []) if p.lower().endswith((".png", ".gif", ".jpg")))
+            exr = " ".join(f'<a href="{html.escape(p)}">{html.escape(Path(p).name)}</a>'
+                           for p in entry.get("images", []) if p.lower().endswith(".exr"))
+            parts.append(
+                f'<div class="entry"><h3>{html.escape(entry.get("title", ""))}</h3>'
+                f'<div class="images">{images}</div>'
+                f'<p>{html.escape(entry.get("caption", ""))}</p>'
+                + (f'<p class="meta">EXR: {exr}</p>' if exr else "")
+                + '<div class="tables"><div><h4>parameters</h4>' + _table(entry.get("params", {}))
+                + '</div><div><h4>timings (s)</h4>' + _table(entry.get("timings", {})) + "</div></div></div>")
+        parts.append("</section>")
+    toc = " · ".join(f'<a href="#{n}">{html.escape(s["heading"])}</a>' for n, s in result["sections"].items())
+    machine = f"{platform.platform()}, Python {platform.python_version()}"
+    return f"""<!doctype html>
+<html><head><meta charset="utf-8"><title>jaxrender gallery</title>
+<style>
+body {{ font-family: sans-serif; margin: 2em; background: #fafafa; color: #222; }}
+img {{ max-width: 360px; margin: 4px; border: 1px solid #ccc; image-rendering: auto; }}
+.entry {{ background: white; padding: 1em; margin: 1em 0; border-radius: 6px; box-shadow: 0 1px 3px #0002; }}
+.tables {{ display: flex; gap: 2em; }} table {{ border-collapse: collapse; font-size: 90%; }}
+th, td {{ border-bottom: 1px solid #ddd; padding: 2px 8px; text-align: left; }}
+.meta {{ color: #666; font-size: 90%; }} .error {{ color: #a00; background: #fee; padding: 1em; overflow-x: auto; }}
+</style></head><body>
+<h1>jaxrender gallery</h1>
+<p class="meta">{'quick preview sizes' if result['quick'] else 'built-in defaults'}; {html.escape(machine)}; timings are wall-clock on this machine, compile time reported apart where given.</p>
+<p>{toc}</p>
+{''.join(parts)}
+</body></html>
+"""

@@ -1,0 +1,54 @@
+"""The showcase stage (paper 000, Fig. 7): five spot lights in fog, two with polka-dot light maps,
+spheres on a floor in front of a back wall.
+
+`stage_scene_dict()` is the built-in scene (design.md's scene-file format; light maps are the
+PNGs shipped in `jaxrender/data/`) and `load_stage_scene()` builds it (the gallery renders it:
+`jaxrender.app.gallery.stage`).
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+from .shafts_file import shafts_scene_from_dict
+
+DATA = Path(__file__).resolve().parents[2] / "data"
+
+_STAGE = {
+    "camera": {"eye": [0.0, 2.2, 8.5], "target": [0.0, 1.6, 0.0], "up": [0, 1, 0], "fov_y_deg": 45,
+               "width": 720, "height": 480},
+    "medium": {"rho": 1.0, "kappa": 0.08, "K": 0.003},
+    "render": {"shadow_map": 1024, "shadow_bias": 0.002, "table_size": 256, "s_min": 0.5, "s_max": 14.0,
+               "t_max": 16.0, "display_white": 1.0},
+    "spotlights": [
+        {"position": [-3.6, 7.2, 0.5], "target": [-1.2, 0.0, -0.5], "up": [0, 0, 1], "cutoff_deg": 18,
+         "beam_width_deg": 12, "intensity": [150, 100, 50], "light_map": "polka_dots.png"},
+        {"position": [3.6, 7.2, 0.5], "target": [1.3, 0.0, 0.3], "up": [0, 0, 1], "cutoff_deg": 18,
+         "beam_width_deg": 12, "intensity": [50, 90, 165], "light_map": "polka_small.png"},
+        {"position": [0.0, 7.5, 1.0], "target": [0.0, 0.0, -1.8], "up": [0, 0, 1], "cutoff_deg": 14,
+         "beam_width_deg": 10, "intensity": [180, 180, 165]},
+        {"position": [-1.8, 7.6, -2.8], "target": [1.8, 0.0, -1.0], "up": [0, 0, 1], "cutoff_deg": 12,
+         "beam_width_deg": 8, "intensity": [170, 50, 100]},
+        {"position": [1.9, 7.6, -2.8], "target": [-2.0, 0.0, -1.2], "up": [0, 0, 1], "cutoff_deg": 12,
+         "beam_width_deg": 8, "intensity": [70, 170, 85]},
+    ],
+    "objects": [
+        {"type": "quad", "center": [0, 0, -1], "u": [5.5, 0, 0], "v": [0, 0, -3.5], "albedo": [0.45, 0.42, 0.4]},
+        {"type": "quad", "center": [0, 3, -4.5], "u": [5.5, 0, 0], "v": [0, 3, 0], "albedo": [0.3, 0.3, 0.35]},
+        {"type": "sphere", "center": [-1.2, 0.6, -0.5], "radius": 0.6, "albedo": [0.8, 0.75, 0.7]},
+        {"type": "sphere", "center": [1.3, 0.45, 0.3], "radius": 0.45, "albedo": [0.7, 0.8, 0.75]},
+        {"type": "sphere", "center": [0.0, 1.0, -1.8], "radius": 1.0, "albedo": [0.85, 0.85, 0.85]},
+    ],
+}
+
+
+def stage_scene_dict() -> dict:
+    """A fresh copy of the built-in stage scene (light maps relative to `jaxrender/data/`)."""
+    return copy.deepcopy(_STAGE)
+
+
+def load_stage_scene(*, width: int | None = None, height: int | None = None):
+    """The stage as a `ShaftsScene`, optionally at another image size."""
+    scene = shafts_scene_from_dict(stage_scene_dict(), base_dir=DATA, source="<built-in stage>")
+    return scene.with_size(width, height) if (width or height) else scene
