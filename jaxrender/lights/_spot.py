@@ -26,8 +26,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ..maths import atan_nonneg, normalize, safe_norm
 from ..camera import look_at_frame
+from ..maths import atan_nonneg, normalize, safe_norm
 from ..textures import bilinear, quantize
 
 __all__ = ["SpotLight", "stack_spotlights", "unstack_spotlights", "cone_angle"]
