@@ -3,6 +3,12 @@
 `load_capture` checks everything before any work starts (the manifest, every field, every image:
 existence, readability, pixel type, size, NaN/Inf in EXR) and raises one `CaptureError` listing
 every problem found, one line each, naming the file. The command lines print it and exit with 2.
+With `headers_only=True` (the streaming ingest, `fitting.ingest`) each image is checked by its
+header alone (existence, type, bit depth, channels, size) and the pixels are checked as they are
+read (`Capture.read_checked`).
+
+Images: 8/16-bit PNG, 8/16-bit TIFF, JPEG (8-bit; a camera's JPEG is sRGB: `response: "srgb"`)
+and EXR. Integer codes are normalised to full scale and linearised by the capture's `response`.
 """
 
 from __future__ import annotations
@@ -16,13 +22,16 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxrender.io import InputError, linear_to_srgb, read_image
+from jaxrender.io import InputError, linear_to_srgb, read_exr, read_image
 
-__all__ = ["CAPTURE_FORMAT", "CAPTURE_VERSION", "CaptureError", "Capture", "load_capture", "MAX_IMAGE_PROBLEMS"]
+__all__ = ["CAPTURE_FORMAT", "CAPTURE_VERSION", "CaptureError", "Capture", "load_capture", "MAX_IMAGE_PROBLEMS",
+           "IMAGE_SUFFIXES", "image_header"]
 
 CAPTURE_FORMAT = "jaxrender-capture"
 CAPTURE_VERSION = 1
 MAX_IMAGE_PROBLEMS = 200  # beyond this many image problems the rest are summarised in one line
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".exr")
+_SUPPORTED = "use 8/16-bit PNG or TIFF, JPEG, or EXR"
 
 
 class CaptureError(InputError):
@@ -73,6 +82,108 @@ class Capture:
             image = read_image(path, srgb=False)
         return _to_rgb(image)
 
+    def read_checked(self, path: str | os.PathLike) -> tuple[np.ndarray | None, list[str]]:
+        """(`read_codes` of one image, its problems): the pixel checks `load_capture` skips with
+        `headers_only` (decodable in full, of the manifest's size, finite values)."""
+        path = Path(path)
+        try:
+            codes = self.read_codes(path)
+        except InputError as error:
+            return None, [str(error)]
+        except Exception as error:  # decoders raise many types for corrupt files
+            return None, [f"{path}: not a readable image ({type(error).__name__}: {error})"]
+        problems = []
+        if tuple(codes.shape[:2]) != tuple(self.size):
+            problems.append(f"{path}: size {codes.shape[0]}x{codes.shape[1]} differs from capture.json's size "
+                            f"{self.size[0]}x{self.size[1]} (H x W)")
+        bad = ~np.isfinite(codes)
+        if bad.any():
+            kinds = ", ".join(k for k, m in (("NaN", np.isnan(codes)), ("Inf", np.isinf(codes))) if m.any())
+            problems.append(f"{path}: {int(bad.sum())} non-finite values ({kinds})")
+        return (None if problems else codes), problems
+
+
+def image_header(path: str | os.PathLike) -> tuple[tuple[int, int], int, str]:
+    """((H, W), channels, pixel type) of an image from its header alone, without decoding pixels.
+
+    Pixel type: "uint8", "uint16" (PNG, TIFF, JPEG) or "float" (EXR). Raises `InputError` naming
+    the file for an unsupported type, bit depth or channel layout, or an unreadable header.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in IMAGE_SUFFIXES:
+        raise InputError(path, f"unsupported image type {suffix or '(none)'!r} ({_SUPPORTED})")
+    try:
+        if suffix == ".png":
+            return _png_header(path)
+        if suffix in (".tif", ".tiff"):
+            return _tiff_header(path)
+        if suffix in (".jpg", ".jpeg"):
+            return _jpeg_header(path)
+        return _exr_header(path)
+    except InputError:
+        raise
+    except Exception as error:  # decoders raise many types for corrupt headers
+        raise InputError(path, f"not a readable image ({type(error).__name__}: {error})") from None
+
+
+_PNG_CHANNELS = {0: 1, 2: 3, 6: 4}  # colour type -> channels (gray, RGB, RGBA); palette and gray+alpha refused
+
+
+def _png_header(path: Path):
+    with open(path, "rb") as f:
+        head = f.read(33)
+    if len(head) < 33 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        raise InputError(path, "not a readable image (no PNG header)")
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    depth, colour = head[24], head[25]
+    if depth not in (8, 16):
+        raise InputError(path, f"{depth}-bit PNG ({_SUPPORTED})")
+    if colour not in _PNG_CHANNELS:
+        raise InputError(path, f"PNG colour type {colour} (use gray, RGB or RGBA)")
+    return (height, width), _PNG_CHANNELS[colour], f"uint{depth}"
+
+
+def _tiff_header(path: Path):
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[0]
+        shape, dtype = tuple(page.shape), np.dtype(page.dtype)
+        samples = int(page.samplesperpixel)
+    if dtype not in (np.uint8, np.uint16):
+        raise InputError(path, f"TIFF pixel type {dtype} ({_SUPPORTED}; float images as EXR)")
+    if len(shape) not in (2, 3) or samples not in (1, 3, 4):
+        raise InputError(path, f"TIFF of shape {shape} (use gray, RGB or RGBA)")
+    if len(shape) == 3 and shape[0] == samples and shape[2] != samples:
+        raise InputError(path, "planar (separate-plane) TIFF (use interleaved gray, RGB or RGBA)")
+    return (int(shape[0]), int(shape[1])), samples, str(dtype)
+
+
+def _jpeg_header(path: Path):
+    from PIL import Image
+
+    with Image.open(path) as image:
+        mode, (width, height) = image.mode, image.size
+    if mode not in ("L", "RGB"):
+        raise InputError(path, f"JPEG mode {mode} (use gray or RGB)")
+    return (height, width), 1 if mode == "L" else 3, "uint8"
+
+
+def _exr_header(path: Path):
+    import OpenEXR
+
+    try:
+        with OpenEXR.File(str(path), header_only=True) as exr:
+            header = exr.header()
+    except Exception as error:
+        raise InputError(path, f"not a readable EXR file ({error})") from None
+    names = {c.name for c in header["channels"]}
+    if not ({"R", "G", "B"} <= names or "Y" in names):
+        raise InputError(path, f"EXR has no R, G, B or Y channels (has {sorted(names)})")
+    (x0, y0), (x1, y1) = header["dataWindow"]
+    return (int(y1 - y0 + 1), int(x1 - x0 + 1)), 3 if {"R", "G", "B"} <= names else 1, "float"
+
 
 def _to_rgb(image: np.ndarray) -> np.ndarray:
     if image.shape[2] == 1:
@@ -90,25 +201,27 @@ def direction_from_angles(theta_deg, phi_deg) -> np.ndarray:
     return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], axis=-1)
 
 
-def _check_image(path: Path, size: tuple[int, int] | None, check_pixels: bool) -> tuple[list[str], tuple | None]:
+def _check_image(path: Path, size: tuple[int, int] | None, check_pixels: bool,
+                 headers_only: bool = False) -> tuple[list[str], tuple | None]:
     """(problems of one image file (empty when fine), its H x W or None when unreadable)."""
-    result = _check_image_problems(path, size, check_pixels)
+    result = _check_image_problems(path, size, check_pixels, headers_only)
     return result if isinstance(result, tuple) else (result, None)
 
 
-def _check_image_problems(path: Path, size: tuple[int, int] | None, check_pixels: bool):
+def _check_image_problems(path: Path, size: tuple[int, int] | None, check_pixels: bool, headers_only: bool):
     if not path.exists():
         return [f"{path}: missing image"]
     if not path.is_file():
         return [f"{path}: not a file"]
     suffix = path.suffix.lower()
-    if suffix not in (".png", ".exr"):
-        return [f"{path}: unsupported image type {suffix or '(none)'!r} (use 8/16-bit PNG or EXR)"]
+    if suffix not in IMAGE_SUFFIXES:
+        return [f"{path}: unsupported image type {suffix or '(none)'!r} ({_SUPPORTED})"]
     problems = []
     try:
-        if suffix == ".exr":
-            from jaxrender.io import read_exr
-
+        if headers_only:
+            shape, _, _ = image_header(path)
+            image = np.empty(shape + (0,), np.float32)  # its shape only
+        elif suffix == ".exr":
             channels = read_exr(path)
             if not (all(c in channels for c in "RGB") or "Y" in channels):
                 return [f"{path}: EXR has no R, G, B or Y channels (has {sorted(channels)})"]
@@ -120,7 +233,8 @@ def _check_image_problems(path: Path, size: tuple[int, int] | None, check_pixels
                     kinds = ", ".join(k for k, m in (("NaN", np.isnan(image)), ("Inf", np.isinf(image))) if m.any())
                     problems.append(f"{path}: {int(bad.sum())} non-finite values ({kinds})")
         else:
-            image = read_image(path, srgb=False)  # 8/16-bit PNG (raises InputError for other types)
+            image_header(path)  # type, bit depth and channel layout, as the header says
+            image = read_image(path, srgb=False)  # 8/16-bit PNG or TIFF, JPEG (raises InputError for other types)
             if image.shape[2] not in (1, 3, 4):
                 return [f"{path}: {image.shape[2]} channels (use gray, RGB or RGBA)"]
     except InputError as error:
@@ -133,14 +247,18 @@ def _check_image_problems(path: Path, size: tuple[int, int] | None, check_pixels
     return problems, tuple(image.shape[:2])
 
 
-def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, workers: int = 4) -> Capture:
+def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, headers_only: bool = False,
+                 workers: int = 4) -> Capture:
     """Load and validate a capture directory; raise `CaptureError` listing every problem.
 
     Checked: capture.json (present, JSON, format "jaxrender-capture", version 1), every field and
     its type (`size`, `response`, `exposures_s`, `view`, `white`, `lights`), light and view
     directions strictly above the horizon (theta in [0, 90)), one image per exposure for the white
     board and for every light, and every image: present, readable (decoded in full when
-    `check_pixels` for EXR; PNGs are always decoded), 8/16-bit PNG or EXR, of the manifest's size, and (EXR) free of NaN/Inf.
+    `check_pixels` for EXR; PNG, TIFF and JPEG are always decoded), 8/16-bit PNG or TIFF, JPEG or EXR,
+    of the manifest's size, and (EXR) free of NaN/Inf. With `headers_only` no pixel is decoded:
+    type, bit depth, channels and size come from each header (`image_header`), and the reader of
+    the pixels checks the rest (`Capture.read_checked`).
     """
     root = Path(capture_dir)
     manifest_path = root / "capture.json"
@@ -250,7 +368,7 @@ def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, w
     paths = list(white_images or []) + [p for images in light_images if images for p in images]
     unique = list(dict.fromkeys(paths))
     with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        results = list(pool.map(lambda p: _check_image(p, size, check_pixels), unique))
+        results = list(pool.map(lambda p: _check_image(p, size, check_pixels, headers_only), unique))
     image_problems = [line for problems_, _ in results for line in problems_]
     if size is None:  # no usable size in the manifest: the images must at least agree with each other
         shapes = [(path, shape) for path, (_, shape) in zip(unique, results, strict=True) if shape is not None]

@@ -1,8 +1,8 @@
-"""Fit a whole capture: chunks of texels, split over the local devices, checkpointed, resumable.
+"""Fit every texel of a capture: chunks of texels, split over the local devices, checkpointed, resumable.
 
-`fit_capture(CAPTURE_DIR, BTF_DIR)` loads and validates the capture (nothing is written when it is
-malformed), merges the exposure brackets, fits every texel with `fitting.lm.fit_texels` in chunks
-of `chunk` texels (each chunk split over all local JAX devices, each device fitting its share in
+The machinery of both paths: observations in memory (`fit_maps`, `fit_observations`) and the
+observation store fitted tile by tile (`fitting.tiles`: `fit_store`, `fit_capture`). Every texel
+is fitted with `fitting.lm.fit_texels` in chunks of `chunk` texels (each chunk split over all local JAX devices, each device fitting its share in
 tiles whose size does not depend on the device count: the maps are bit-identical on 1 or N devices),
 and writes the BTF directory: level 0 through `jaxrender.io.write_btf` (`btf.json` last), PNG
 previews, then the EM pyramid (`fitting.pyramid.build_pyramid`, which rewrites `btf.json` last).
@@ -31,8 +31,10 @@ import numpy as np
 from jaxrender.io import atomic_path, write_btf, write_btf_previews
 
 from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, SOLVERS, default_tolerances, fit_texels
+from .pyramid import build_pyramid
 
-__all__ = ["fit_capture", "fit_observations", "fit_maps", "level0_channels", "DEFAULT_CHUNK", "TILE"]
+__all__ = ["fit_observations", "fit_maps", "fit_chunks", "fit_chunk", "chunk_plan", "level0_channels", "write_fit",
+           "DEFAULT_CHUNK", "TILE", "PARTIAL"]
 
 DEFAULT_CHUNK = 4096
 TILE = 32  # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
@@ -127,6 +129,98 @@ def _load_chunk(path: Path, count: int) -> dict[str, np.ndarray] | None:
     return out
 
 
+def chunk_plan(total: int, chunk: int) -> tuple[list[int], int, int]:
+    """(first texel of every chunk, tile, padded chunk size): the work units of a fit.
+
+    Every chunk is fitted with the same padded shape (one compilation), the last one padded with
+    its last texel: the same units whether the observations are in memory or in a store, fitted
+    here or on a Dask worker, so a texel always meets the same compiled program."""
+    n_dev = jax.local_device_count()
+    tile, per_device = _layout(min(chunk, total), n_dev)
+    return list(range(0, total, chunk)), tile, per_device * n_dev
+
+
+def fit_chunk(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], start: int, count: int, padded: int,
+              light_dirs, view_dir, *, tile: int, model: str, solver: str, max_steps: int) -> dict[str, np.ndarray]:
+    """Fit texels `start .. start + count - 1`: `read(start, count)` gives their (ratio `count L 3`,
+    weight `count L`); padded to `padded` texels with the last one; flat numpy `TexelFit` fields."""
+    ratio, weight = read(start, count)
+    if count != padded:
+        idx = np.minimum(np.arange(padded), count - 1)  # pad with the last texel
+        ratio, weight = ratio[idx], weight[idx]
+    out = _chunk_fit(ratio, weight, light_dirs, view_dir, tile=tile, model=model, solver=solver, max_steps=max_steps)
+    return {k: v[:count] for k, v in out.items()}
+
+
+def chunk_path(partial: Path, index: int) -> Path:
+    return partial / f"chunk_{index:06d}.npz"
+
+
+def check_settings(solver: str, chunk: int, max_steps: int) -> None:
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}: use one of {SOLVERS}")
+    if chunk < 1 or max_steps < 1:
+        raise ValueError("chunk and max_steps must be >= 1")
+
+
+def progress_bar(total: int, progress: bool | None):
+    """tqdm bar of texels: done / total, rate and time left (None: on a terminal only)."""
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, unit="texel", desc="fit", disable=None if progress is None else not progress,
+                smoothing=0.1)
+
+
+def assemble_maps(results: list[dict[str, np.ndarray]], size: tuple[int, int]) -> dict[str, np.ndarray]:
+    """Per-chunk flat results (in texel order) -> `H W ...` maps."""
+    maps = {name: np.concatenate([r[name] for r in results]) for name in _FIELDS}
+    return {name: v.reshape(tuple(size) + v.shape[1:]) for name, v in maps.items()}
+
+
+def fit_chunks(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], size: tuple[int, int], light_dirs,
+               view_dir, *, solver: str, chunk: int, max_steps: int, model: str, partial: Path | None,
+               progress: bool | None, on_chunk: Callable[[int], object] | None = None,
+               prefetch: bool = False) -> dict[str, np.ndarray]:
+    """Fit every chunk of `read`'s texels in this process, checkpointing each into `partial`
+    (chunks already there are loaded). `prefetch`: read the next chunk (a thread) while this one
+    is fitted. `on_chunk(i)` is called after chunk i is fitted and saved."""
+    import concurrent.futures
+
+    total = size[0] * size[1]
+    starts, tile, padded = chunk_plan(total, chunk)
+    counts = [min(chunk, total - start) for start in starts]
+    results: list[dict[str, np.ndarray] | None] = [
+        _load_chunk(chunk_path(partial, i), counts[i]) if partial is not None and chunk_path(partial, i).is_file()
+        else None for i in range(len(starts))]
+    todo = [i for i, r in enumerate(results) if r is None]
+    bar = progress_bar(total, progress)
+    bar.update(total - sum(counts[i] for i in todo))
+
+    def load(i):
+        return read(starts[i], counts[i])
+
+    reader = concurrent.futures.ThreadPoolExecutor(max_workers=1) if prefetch and todo else None
+    try:
+        future = reader.submit(load, todo[0]) if reader is not None else None
+        for k, i in enumerate(todo):
+            data = future.result() if reader is not None else load(i)
+            if reader is not None and k + 1 < len(todo):
+                future = reader.submit(load, todo[k + 1])
+            result = fit_chunk(lambda s, c, data=data: data, starts[i], counts[i], padded, light_dirs, view_dir,
+                               tile=tile, model=model, solver=solver, max_steps=max_steps)
+            if partial is not None:
+                _save_chunk(chunk_path(partial, i), result)
+            results[i] = result
+            bar.update(counts[i])
+            if on_chunk is not None:
+                on_chunk(i)
+    finally:
+        bar.close()
+        if reader is not None:
+            reader.shutdown(wait=True, cancel_futures=True)
+    return assemble_maps(results, size)
+
+
 def fit_maps(obs, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK, max_steps: int = DEFAULT_MAX_STEPS,
              model: str = "reciprocal", partial_dir: str | os.PathLike | None = None,
              progress: bool | None = None, on_chunk: Callable[[int], object] | None = None) -> dict[str, np.ndarray]:
@@ -135,59 +229,25 @@ def fit_maps(obs, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK, m
     `partial_dir`: checkpoint finished chunks there and reuse the ones already present.
     `progress`: None = a tqdm bar on a terminal only, False = never, True = always.
     """
-    from tqdm.auto import tqdm
-
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown solver {solver!r}: use one of {SOLVERS}")
-    if chunk < 1 or max_steps < 1:
-        raise ValueError("chunk and max_steps must be >= 1")
+    check_settings(solver, chunk, max_steps)
     h, w = obs.size
-    n_lights = obs.n_lights
     total = h * w
-    ratio = np.asarray(obs.ratio).reshape(total, n_lights, 3)
-    weight = np.asarray(obs.weight).reshape(total, n_lights)
-    n_dev = jax.local_device_count()
-    tile, per_device = _layout(min(chunk, total), n_dev)
-    padded = per_device * n_dev  # one shape for every chunk: one compilation
-    starts = list(range(0, total, chunk))
+    ratio = np.asarray(obs.ratio).reshape(total, obs.n_lights, 3)
+    weight = np.asarray(obs.weight).reshape(total, obs.n_lights)
     settings = {"solver": solver, "chunk": chunk, "max_steps": max_steps, "model": model,
                 "dtype": str(ratio.dtype)}
     partial = None
     if partial_dir is not None:
         partial = Path(partial_dir)
         _prepare_partial(partial, _fingerprint(obs, settings))
-    results: list[dict[str, np.ndarray]] = []
-    bar = tqdm(total=total, unit="texel", desc="fit", disable=None if progress is None else not progress,
-               smoothing=0.1)
-    converged = 0
-    for i, start in enumerate(starts):
-        count = min(chunk, total - start)
-        path = partial / f"chunk_{i:06d}.npz" if partial is not None else None
-        result = _load_chunk(path, count) if path is not None and path.is_file() else None
-        if result is None:
-            if count == padded:   # a view: no copy of the chunk's observations
-                chunk_ratio, chunk_weight = ratio[start:start + count], weight[start:start + count]
-            else:
-                idx = np.minimum(np.arange(start, start + padded), start + count - 1)  # pad with the last texel
-                chunk_ratio, chunk_weight = ratio[idx], weight[idx]
-            out = _chunk_fit(chunk_ratio, chunk_weight, obs.light_dirs, obs.view_dir, tile=tile, model=model, solver=solver,
-                             max_steps=max_steps)
-            result = {k: v[:count] for k, v in out.items()}
-            if path is not None:
-                _save_chunk(path, result)
-        results.append(result)
-        converged += int(np.sum(result["converged"]))
-        bar.update(count)
-        bar.set_postfix(converged=f"{converged / (start + count):.1%}", refresh=False)
-        if on_chunk is not None:
-            on_chunk(i)
-    bar.close()
-    maps = {name: np.concatenate([r[name] for r in results]) for name in _FIELDS}
-    return {name: v.reshape((h, w) + v.shape[1:]) for name, v in maps.items()}
+    return fit_chunks(lambda s, c: (ratio[s:s + c], weight[s:s + c]), (h, w), obs.light_dirs, obs.view_dir,
+                      solver=solver, chunk=chunk, max_steps=max_steps, model=model, partial=partial,
+                      progress=progress, on_chunk=on_chunk)
 
 
 def level0_channels(maps: dict[str, np.ndarray], obs) -> dict[str, np.ndarray]:
-    """BTF level-0 channels (design.md names) of `fit_maps` output and the observation counts."""
+    """BTF level-0 channels (design.md names) of `fit_maps` output and the observation counts
+    (`Observations` or a dict `n_valid`, `n_saturated`, `n_dark` of `H W` maps)."""
     c: dict[str, np.ndarray] = {}
     for i, ch in enumerate("RGB"):
         c[f"rho_d.{ch}"] = maps["rho_d"][..., i]
@@ -197,54 +257,42 @@ def level0_channels(maps: dict[str, np.ndarray], obs) -> dict[str, np.ndarray]:
     c["sigma_x"], c["sigma_y"] = maps["sigma_x"], maps["sigma_y"]
     c["residual"] = maps["residual"]
     c["converged"] = maps["converged"].astype(np.float32)
-    for name in ("n_valid", "n_saturated", "n_dark"):
-        c[name] = np.asarray(getattr(obs, name))
+    for name in ("n_valid", "n_saturated", "n_dark"):  # `Observations` or a dict of counts (a store's)
+        c[name] = np.asarray(obs[name] if isinstance(obs, dict) else getattr(obs, name))
     return {k: np.asarray(v, np.float32) for k, v in c.items()}
 
 
-def fit_observations(obs, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK,
-                     max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal", pyramid: bool = True,
-                     progress: bool | None = None, meta: dict | None = None) -> Path:
-    """Fit `Observations` into the BTF directory `btf_dir` (checkpointed and resumable)."""
-    btf_dir = Path(btf_dir)
-    partial = btf_dir / PARTIAL
-    t0 = time.perf_counter()
-    maps = fit_maps(obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model, partial_dir=partial,
-                    progress=progress)
-    fit_s = time.perf_counter() - t0
-    level0 = level0_channels(maps, obs)
-    rtol, atol = default_tolerances(np.asarray(obs.ratio).dtype)
+def write_fit(btf_dir: Path, maps: dict[str, np.ndarray], counts, *, solver: str, chunk: int, max_steps: int,
+              model: str, pyramid: bool, seconds: float, meta: dict | None = None) -> Path:
+    """Level 0 (`btf.json` last), its previews and the EM pyramid of fitted maps; removes `.partial/`.
+    `counts`: `Observations` or a dict of `n_valid`, `n_saturated`, `n_dark` maps."""
+    level0 = level0_channels(maps, counts)
+    rtol, atol = default_tolerances(np.float32)  # the fit always sees float32 observations
     info = {"fit": {"solver": solver, "method": "levenberg-marquardt, variable projection of rho_d, rho_s",
                     "chunk": chunk, "max_steps": max_steps, "rtol": rtol, "atol": atol,
                     "devices": jax.local_device_count(),
                     "converged_fraction": float(np.mean(maps["converged"])),
                     "median_residual": float(np.median(maps["residual"])),
-                    "median_steps": float(np.median(maps["num_steps"])), "seconds": round(fit_s, 3)}}
+                    "median_steps": float(np.median(maps["num_steps"])), "seconds": round(seconds, 3)}}
     info.update(meta or {})
     write_btf(btf_dir, [level0], model=model, meta=info)
     write_btf_previews(btf_dir, level0)
+    del level0
     if pyramid:
-        from .pyramid import build_pyramid
-
         build_pyramid(btf_dir)
-    shutil.rmtree(partial, ignore_errors=True)
+    shutil.rmtree(btf_dir / PARTIAL, ignore_errors=True)
     return btf_dir
 
 
-def fit_capture(capture_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_SOLVER,
-                chunk: int = DEFAULT_CHUNK, max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal",
-                pyramid: bool = True, progress: bool | None = None) -> Path:
-    """Capture directory -> BTF directory (see the module docstring). Raises `InputError`
-    (`CaptureError`) for a malformed capture before anything is written."""
-    from .capture import load_capture
-    from .hdr import merge_capture
-
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown solver {solver!r}: use one of {SOLVERS}")
+def fit_observations(obs, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK,
+                     max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal", pyramid: bool = True,
+                     progress: bool | None = None, meta: dict | None = None) -> Path:
+    """Fit in-memory `Observations` into the BTF directory `btf_dir` (checkpointed and resumable)."""
+    btf_dir = Path(btf_dir)
+    if np.asarray(obs.ratio).dtype != np.float32:
+        raise ValueError("fit_observations fits float32 observations")
     t0 = time.perf_counter()
-    capture = load_capture(capture_dir)
-    obs = merge_capture(capture, progress=progress)
-    merge_s = time.perf_counter() - t0
-    meta = {"capture": str(Path(capture_dir).resolve()), "merge_seconds": round(merge_s, 3)}
-    return fit_observations(obs, btf_dir, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
-                            pyramid=pyramid, progress=progress, meta=meta)
+    maps = fit_maps(obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model, partial_dir=btf_dir / PARTIAL,
+                    progress=progress)
+    return write_fit(btf_dir, maps, obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
+                     pyramid=pyramid, seconds=time.perf_counter() - t0, meta=dict(meta or {}))
