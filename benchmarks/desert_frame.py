@@ -12,10 +12,10 @@ import time
 from pathlib import Path
 
 import jax
-
-from jaxrender.io import write_png
 from _timing import timed  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
+
 from jaxrender.app.scenes import desert as D
+from jaxrender.io import write_png
 
 FIG = Path(__file__).parent / "figures"
 

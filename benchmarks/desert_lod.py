@@ -17,8 +17,8 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-
 from _timing import timed  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
+
 from jaxrender.app.scenes import desert as D
 from jaxrender.terrain import plan_quads, quad_capacities, shade_quads
 

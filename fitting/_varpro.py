@@ -26,9 +26,15 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from jaxrender.brdf import (
+    COS_FLOOR,
+    SIGMA_FLOOR,
+    half_vector,
+    slope_distribution_from_components,
+    specular_factor,
+    tangent_frame,
+)
 from jaxrender.maths import dot, normalize
-from jaxrender.brdf import (COS_FLOOR, SIGMA_FLOOR, half_vector, slope_distribution_from_components, specular_factor,
-                            tangent_frame)
 
 S_MIN, S_MAX = -12.0, 3.0   # log(sigma - floor): sigma from SIGMA_FLOOR + 6e-6 to ~20 (a flat lobe)
 RIDGE = 1e-7                # ridge on rho per valid observation: see `ridge_of`

@@ -46,8 +46,19 @@ from jaxtyping import Array, Bool, Float, Int
 from jaxrender.brdf import MODELS, BTFTexel, reflectance, tangent_frame
 from jaxrender.maths import normalize
 
-from ._varpro import (RIDGE, S_MAX, S_MIN, Lights, columns, columns_from_frame, gauss_newton, geometry_to_theta,
-                      lights_of, projected_cost_offset, theta_to_geometry)
+from ._varpro import (
+    RIDGE,
+    S_MAX,
+    S_MIN,
+    Lights,
+    columns,
+    columns_from_frame,
+    gauss_newton,
+    geometry_to_theta,
+    lights_of,
+    projected_cost_offset,
+    theta_to_geometry,
+)
 from ._varpro import project_rho as _project_rho
 
 __all__ = ["TexelFit", "SOLVERS", "fit_texels", "fit_texel", "initial_theta", "theta_to_geometry",

@@ -26,8 +26,8 @@ import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from jaxrender.brdf import MODELS, BTFTexel, reflectance
-from jaxrender.maths import default_float
 from jaxrender.io import InputError, atomic_path, linear_to_srgb, write_btf, write_exr, write_png
+from jaxrender.maths import default_float
 
 from .capture import direction_from_angles
 from .hdr import Observations, observations_from_batches, observe

@@ -10,7 +10,7 @@ import skimage.io
 
 import jaxrender.io as jio
 from jaxrender.brdf import BTFTexel
-from jaxrender.io import InputError, LEVEL0_CHANNELS, LOBE_CHANNELS, read_btf, write_btf, write_btf_levels
+from jaxrender.io import LEVEL0_CHANNELS, LOBE_CHANNELS, InputError, read_btf, write_btf, write_btf_levels
 
 # Names spelled out from design.md, independently of the module's constants.
 DESIGN_LOBE = ["rho_d.R", "rho_d.G", "rho_d.B", "rho_s.R", "rho_s.G", "rho_s.B", "normal.X", "normal.Y", "normal.Z",

@@ -5,11 +5,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrender.camera import Camera
 from jaxrender.app.scenes.desert import desert_frame, desert_scene, to_display
+from jaxrender.camera import Camera
 from jaxrender.shadows import triangle_height
-from jaxrender.terrain import (billboard_alpha, normal_pyramid, plan_quads, quad_capacities, ray_cast_coherent,
-                               ray_cast_heightfield, ripple_normal_map, sand_grain_texture)
+from jaxrender.terrain import (
+    billboard_alpha,
+    normal_pyramid,
+    plan_quads,
+    quad_capacities,
+    ray_cast_coherent,
+    ray_cast_heightfield,
+    ripple_normal_map,
+    sand_grain_texture,
+)
 
 CENTRAL_DIFF_TOL = 2e-3  # O((k t)^2 / 6) of central differences: k t = 2 pi / 32 -> slope error ~0.6 %
 LOD_MEAN_DIFF_MAX = 3.92 / 255  # the paper's mean |LOD - full| over the image (section 4)

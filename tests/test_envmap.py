@@ -9,8 +9,7 @@ import pytest
 import scipy.stats
 
 from jaxrender.io import InputError, write_exr
-from jaxrender.lights import (EnvMap, env_pdf, env_radiance, envmap_direction, envmap_uv, load_envmap,
-                              sample_envmap)
+from jaxrender.lights import EnvMap, env_pdf, env_radiance, envmap_direction, envmap_uv, load_envmap, sample_envmap
 
 _H, _W = 8, 16
 _PDF_TOL = 1e-9            # float64 sum of a piecewise-constant pdf over an aligned grid: round-off only

@@ -7,8 +7,15 @@ import numpy as np
 
 from jaxrender.brdf import BTFTexel, Lobe
 from jaxrender.camera import Camera
-from jaxrender.fabric import (camera_pinhole, mip_level, raster_window, rasterize, shade_fabric, shade_samples,
-                              stack_materials)
+from jaxrender.fabric import (
+    camera_pinhole,
+    mip_level,
+    raster_window,
+    rasterize,
+    shade_fabric,
+    shade_samples,
+    stack_materials,
+)
 
 _GRAD_RTOL = 1e-5     # float64 central differences with h = 1e-6 on a smooth configuration
 _GRAD_ATOL = 1e-8

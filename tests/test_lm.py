@@ -11,8 +11,17 @@ import numpy as np
 import pytest
 import scipy.optimize
 
-from fitting.lm import (S_MAX, S_MIN, basis, fit_texels, geometry_to_theta, initial_theta, project_rho,
-                        texel_cost, theta_to_geometry)
+from fitting.lm import (
+    S_MAX,
+    S_MIN,
+    basis,
+    fit_texels,
+    geometry_to_theta,
+    initial_theta,
+    project_rho,
+    texel_cost,
+    theta_to_geometry,
+)
 from fitting.synth import paper_light_directions, stratified_light_subset
 from jaxrender.brdf import SIGMA_FLOOR, BTFTexel, reflectance
 

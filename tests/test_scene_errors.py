@@ -4,14 +4,13 @@ plus the loader's semantics (defaults, relative light maps) and one valid CLI re
 import copy
 import json
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from jaxrender.app.cli.programs import jaxrender_main as main
-from jaxrender.io import InputError, read_image, write_png
 from jaxrender.app.scenes import ShaftsSceneWarning, load_shafts_scene, shafts_scene_from_dict
+from jaxrender.io import InputError, read_image, write_png
 
 _SCENE = {
     "camera": {"eye": [0, 1.5, 6], "target": [0, 1, 0], "up": [0, 1, 0], "fov_y_deg": 40, "width": 8, "height": 6},

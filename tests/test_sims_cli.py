@@ -6,9 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxrender.app.cli.programs import sims_main as main
 from jaxrender.io import read_exr, read_image
 from sims import DuneParams, RippleParams, init_dunes, init_ripples, simulate_dunes, simulate_ripples
-from jaxrender.app.cli.programs import sims_main as main
 
 _F32_TOL = 1e-5  # float32 output file vs the float64 API run: rounding of ~10-unit heights
 

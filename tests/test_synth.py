@@ -6,8 +6,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fitting import (LIGHT_DIRECTIONS, Sensor, load_capture, merge_capture, paper_light_angles,
-                     stratified_light_subset, synth_capture, synth_maps, synth_observations)
+from fitting import (
+    LIGHT_DIRECTIONS,
+    Sensor,
+    load_capture,
+    merge_capture,
+    paper_light_angles,
+    stratified_light_subset,
+    synth_capture,
+    synth_maps,
+    synth_observations,
+)
 from fitting.synth import EXPOSURES_S, synth_codes
 from jaxrender.brdf import reflectance
 from jaxrender.io import read_btf, read_image

@@ -10,8 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fitting._varpro import (columns, columns_and_derivatives, gauss_newton, lights_of, projected_objective,
-                             ridge_of)
+from fitting._varpro import columns, columns_and_derivatives, gauss_newton, lights_of, projected_objective, ridge_of
 from fitting.synth import paper_light_directions
 
 LIGHTS = jnp.asarray(paper_light_directions()[::7])

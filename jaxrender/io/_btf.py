@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._atomic import atomic_path
 from ..errors import InputError
+from ._atomic import atomic_path
 from ._images import read_exr, write_exr, write_png
 
 __all__ = ["BTF_FORMAT", "BTF_VERSION", "BTF_MODELS", "LOBE_CHANNELS", "LEVEL0_CHANNELS", "BTF_UNITS",

@@ -24,9 +24,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ..maths import safe_norm
 from ..geometry import Primitives, cast_rays
 from ..lights import SpotLight
+from ..maths import safe_norm
 from ..textures import nearest
 
 __all__ = ["ShadowMap", "render_shadow_map", "shadow_uv_distance", "shadow_test", "texel_directions"]
