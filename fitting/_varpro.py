@@ -68,10 +68,10 @@ class Lights(NamedTuple):
     vectorizes long rows well and a minor axis of 3 badly), with the half vectors precomputed:
     they depend on the light and view directions only, never on the parameters."""
 
-    l: tuple[Float[Array, "L"], Float[Array, "L"], Float[Array, "L"]]
-    h: tuple[Float[Array, "L"], Float[Array, "L"], Float[Array, "L"]]
+    l: tuple[Float[Array, " L"], Float[Array, " L"], Float[Array, " L"]]
+    h: tuple[Float[Array, " L"], Float[Array, " L"], Float[Array, " L"]]
     view: Float[Array, "3"]
-    geometric: Bool[Array, "L"]   # light and view above the sample plane
+    geometric: Bool[Array, " L"]   # light and view above the sample plane
 
 
 def lights_of(light_dirs: Float[Array, "L 3"], view_dir: Float[Array, "3"]) -> Lights:
@@ -91,7 +91,7 @@ def _frame(theta):
     return n, t, b, sx, sy
 
 
-def columns_from_frame(frame, lights: Lights, model: str) -> tuple[Float[Array, "L"], Float[Array, "L"]]:
+def columns_from_frame(frame, lights: Lights, model: str) -> tuple[Float[Array, " L"], Float[Array, " L"]]:
     """Diffuse and specular columns (a, b) for the lobe frame (N, T, B) and slopes: term for term
     `jaxrender.brdf.reflectance` of a one-lobe texel (the same D and specular factor)."""
     n, t, bt, sx, sy = frame
@@ -102,7 +102,7 @@ def columns_from_frame(frame, lights: Lights, model: str) -> tuple[Float[Array, 
     return a, b
 
 
-def columns(theta: Float[Array, "4"], lights: Lights, model: str) -> tuple[Float[Array, "L"], Float[Array, "L"]]:
+def columns(theta: Float[Array, "4"], lights: Lights, model: str) -> tuple[Float[Array, " L"], Float[Array, " L"]]:
     """(a, b) at the parameters theta."""
     return columns_from_frame(_frame(theta), lights, model)
 
@@ -150,7 +150,7 @@ def columns_and_derivatives(theta: Float[Array, "4"], lights: Lights, model: str
 # ---------------------------------------------------------------------------------------------
 # rho projected out
 
-def ridge_of(w: Float[Array, "L"], ridge: float = RIDGE) -> Float[Array, ""]:
+def ridge_of(w: Float[Array, " L"], ridge: float = RIDGE) -> Float[Array, ""]:
     """lam of the penalty 0.5 lam |rho|^2 added to the cost: `ridge` per unit of observation
     weight (a, b are O(1): ~1e-7 of the normal equations' diagonal), plus a tiny floor.
 
@@ -192,14 +192,14 @@ def _sums(a, b, ratio_cl, w):
     return wa, wb, jnp.sum(wa * a), jnp.sum(wa * b), jnp.sum(wb * b), har, hbr
 
 
-def project_rho(a: Float[Array, "L"], b: Float[Array, "L"], ratio_cl: Float[Array, "3 L"], w: Float[Array, "L"],
+def project_rho(a: Float[Array, " L"], b: Float[Array, " L"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"],
                 *, ridge: float = RIDGE) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
     """The best non-negative (rho_d, rho_s) per channel for columns a, b (see `nnls2`, `ridge_of`)."""
     _, _, saa, sab, sbb, har, hbr = _sums(a, b, ratio_cl, w)
     return nnls2(saa, sab, sbb, har, hbr, ridge_of(w, ridge))
 
 
-def projected_cost_offset(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, "L"], lights: Lights,
+def projected_cost_offset(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"], lights: Lights,
                           model: str) -> Float[Array, ""]:
     """2 * projected objective - sum w R^2 = sum_c (rho_c^T (G + lam) rho_c - 2 rho_c^T h_c), from the sums of
     one pass (no residuals): enough to rank starting points (it cancels where the fit is close,
@@ -211,7 +211,7 @@ def projected_cost_offset(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"
     return jnp.sum((saa + lam) * rd * rd + 2 * sab * rd * rs + (sbb + lam) * rs * rs - 2 * (rd * har + rs * hbr))
 
 
-def projected_objective(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, "L"], lights: Lights,
+def projected_objective(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"], lights: Lights,
                         model: str):
     """(objective, cost, rho_d, rho_s) at theta with the projected rho (`gauss_newton` without
     derivatives)."""
@@ -237,7 +237,7 @@ class GaussNewton(NamedTuple):
     rho_s: Float[Array, "3"]
 
 
-def gauss_newton(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, "L"], lights: Lights,
+def gauss_newton(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"], lights: Lights,
                  model: str) -> GaussNewton:
     """Cost, exact gradient and Kaufman Gauss-Newton matrix of the projected cost (module docstring)."""
     a, b, da, db = columns_and_derivatives(theta, lights, model)

@@ -115,14 +115,14 @@ def basis(normal: Float[Array, "3"], sigma_x: Float[Array, ""], sigma_y: Float[A
     return jnp.stack(columns_from_frame((n, t, b, sigma_x, sigma_y), lights, model), axis=-1)
 
 
-def project_rho(ab: Float[Array, "L 2"], ratio_cl: Float[Array, "3 L"], w: Float[Array, "L"], *,
+def project_rho(ab: Float[Array, "L 2"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"], *,
                 ridge: float = RIDGE) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
     """Per channel: argmin_{rho_d, rho_s >= 0} sum_l w_l (R_l - rho_d a_l - rho_s b_l)^2 + lam |rho|^2
     (closed form, `fitting._varpro.nnls2`); the observations are channel-major (`3 L`)."""
     return _project_rho(ab[:, 0], ab[:, 1], ratio_cl, w, ridge=ridge)
 
 
-def _normalized_weights(weight: Float[Array, "L"]) -> Float[Array, "L"]:
+def _normalized_weights(weight: Float[Array, " L"]) -> Float[Array, " L"]:
     valid = weight > 0
     n = jnp.sum(valid).astype(weight.dtype)
     total = jnp.sum(jnp.where(valid, weight, 0.0))
@@ -131,7 +131,7 @@ def _normalized_weights(weight: Float[Array, "L"]) -> Float[Array, "L"]:
 
 
 def texel_residuals(rho_d: Float[Array, "3"], rho_s: Float[Array, "3"], normal: Float[Array, "3"],
-                    sigma_x, sigma_y, ratio: Float[Array, "L 3"], weight: Float[Array, "L"],
+                    sigma_x, sigma_y, ratio: Float[Array, "L 3"], weight: Float[Array, " L"],
                     light_dirs: Float[Array, "L 3"], view_dir: Float[Array, "3"], *,
                     model: str = "reciprocal") -> Float[Array, "L 3"]:
     """sqrt(w_l) (R_lc - model_lc) for explicit parameters (`weight` raw; normalized here)."""
@@ -240,7 +240,7 @@ class _VarProResidual(eqx.Module):
 # ---------------------------------------------------------------------------------------------
 # starting values
 
-def _photometric_stereo(ratio_cl: Float[Array, "3 L"], w: Float[Array, "L"], lights: Lights) -> Float[Array, "3"]:
+def _photometric_stereo(ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"], lights: Lights) -> Float[Array, "3"]:
     """Lambertian normal from the luminance, re-solved without specular outliers and shadows."""
     dt = ratio_cl.dtype
     y = (ratio_cl[0] + ratio_cl[1] + ratio_cl[2]) / 3
@@ -263,7 +263,7 @@ def _photometric_stereo(ratio_cl: Float[Array, "3 L"], w: Float[Array, "L"], lig
     return jnp.where(n[2] > 0.05, n, z)
 
 
-def initial_theta(ratio: Float[Array, "L 3"], weight: Float[Array, "L"], light_dirs: Float[Array, "L 3"],
+def initial_theta(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs: Float[Array, "L 3"],
                   view_dir: Float[Array, "3"], *, model: str = "reciprocal") -> Float[Array, "4"]:
     """The starting point of the solver (see the module docstring)."""
     return _initial_theta(jnp.asarray(ratio).T, _normalized_weights(jnp.asarray(weight)),
@@ -421,7 +421,7 @@ def _solve_native(fn, theta0, args, max_steps, rtol, atol):
     return st["theta"], st["done"], st["step"]
 
 
-def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, "L"], light_dirs: Float[Array, "L 3"],
+def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs: Float[Array, "L 3"],
               view_dir: Float[Array, "3"], *, model: str = "reciprocal", solver: str = DEFAULT_SOLVER,
               max_steps: int = DEFAULT_MAX_STEPS, rtol: float | None = None, atol: float | None = None,
               theta0: Float[Array, "4"] | None = None) -> TexelFit:

@@ -265,7 +265,7 @@ def _expose(key, radiance_rel, exposures, sensor: Sensor):
 
 @functools.partial(jax.jit, static_argnames=("model",))
 def synth_codes(key: PRNGKeyArray, texels: BTFTexel, light_dirs: Float[Array, "B 3"],
-                light_ids: Int[Array, "B"], view_dir: Float[Array, "3"], exposures: Float[Array, "E"],
+                light_ids: Int[Array, " B"], view_dir: Float[Array, "3"], exposures: Float[Array, " E"],
                 *, sensor: Sensor, model: str = "reciprocal") -> Float[Array, "B E H W 3"]:
     """Raw code values of a batch of lights. The noise of light `light_ids[b]` depends only on
     (`key`, that id), so batching does not change the result."""
@@ -276,7 +276,7 @@ def synth_codes(key: PRNGKeyArray, texels: BTFTexel, light_dirs: Float[Array, "B
 
 
 @functools.partial(jax.jit, static_argnames=("size",))
-def synth_white_codes(key: PRNGKeyArray, reflectance_rgb: Float[Array, "3"], exposures: Float[Array, "E"], *,
+def synth_white_codes(key: PRNGKeyArray, reflectance_rgb: Float[Array, "3"], exposures: Float[Array, " E"], *,
                       size: tuple[int, int], sensor: Sensor) -> Float[Array, "E H W 3"]:
     """Codes of the white board lit at normal incidence (reflectance * falloff)."""
     dtype = reflectance_rgb.dtype

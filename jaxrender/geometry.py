@@ -37,7 +37,7 @@ class Spheres(eqx.Module):
     """N spheres: `center` (N, 3), `radius` (N,), `albedo` (N, 3) linear RGB."""
 
     center: Float[Array, "N 3"]
-    radius: Float[Array, "N"]
+    radius: Float[Array, " N"]
     albedo: Float[Array, "N 3"]
 
     def __init__(self, center, radius, albedo=None):
@@ -50,7 +50,7 @@ class Spheres(eqx.Module):
     def count(self) -> int:
         return self.center.shape[0]
 
-    def intersect(self, origin: Float[Array, "3"], direction: Float[Array, "3"]) -> Float[Array, "N"]:
+    def intersect(self, origin: Float[Array, "3"], direction: Float[Array, "3"]) -> Float[Array, " N"]:
         """Hit distance of one ray against every sphere (inf = miss)."""
         return jax.vmap(intersect_sphere, in_axes=(None, None, 0, 0))(origin, direction, self.center, self.radius)
 
@@ -83,7 +83,7 @@ class Quads(eqx.Module):
     def count(self) -> int:
         return self.center.shape[0]
 
-    def intersect(self, origin: Float[Array, "3"], direction: Float[Array, "3"]) -> Float[Array, "N"]:
+    def intersect(self, origin: Float[Array, "3"], direction: Float[Array, "3"]) -> Float[Array, " N"]:
         return jax.vmap(intersect_quad, in_axes=(None, None, 0, 0, 0))(origin, direction, self.center, self.u, self.v)
 
     def normal(self, index: Array, point: Float[Array, "3"]) -> Float[Array, "3"]:

@@ -62,7 +62,7 @@ def envmap_direction(uv: Float[ArrayLike, "... 2"]) -> Float[Array, "... 3"]:
     return jnp.stack([st * jnp.sin(phi), jnp.cos(theta), -st * jnp.cos(phi)], axis=-1)
 
 
-def env_texel_solid_angles(height: int, width: int, *, dtype=jnp.float32) -> Float[Array, "H"]:
+def env_texel_solid_angles(height: int, width: int, *, dtype=jnp.float32) -> Float[Array, " H"]:
     """Exact solid angle of one texel in each row of an H x W lat-long map."""
     j = jnp.arange(height + 1, dtype=dtype)
     c = jnp.cos(jnp.pi * j / height)
@@ -76,7 +76,7 @@ class EnvMap(eqx.Module):
     """
 
     radiance: Float[Array, "H W 3"]
-    cdf: Float[Array, "N"]          # cumulative texel probabilities (row-major), last = 1
+    cdf: Float[Array, " N"]          # cumulative texel probabilities (row-major), last = 1
     pdf_scale: Float[Array, ""]     # pdf(d) = luminance(texel) * pdf_scale (or uniform)
     uniform: Int[Array, ""]         # 1 when the map is black: sample the sphere uniformly
 
@@ -168,7 +168,7 @@ class EnvSamples(eqx.Module):
 
     direction: Float[Array, "K 3"]
     radiance: Float[Array, "K 3"]
-    pdf: Float[Array, "K"]
+    pdf: Float[Array, " K"]
 
 
 def sample_envmap(env: EnvMap, key: PRNGKeyArray, k: int = 20) -> EnvSamples:

@@ -35,7 +35,7 @@ class QuadLights(eqx.Module):
         return normalize(jnp.cross(self.u, self.v))
 
     @property
-    def area(self) -> Float[Array, "F"]:
+    def area(self) -> Float[Array, " F"]:
         c = jnp.cross(self.u, self.v)
         return 4 * jnp.sqrt(jnp.sum(c * c, axis=-1))
 
@@ -44,8 +44,8 @@ class QuadLightSamples(eqx.Module):
     position: Float[Array, "K 3"]
     normal: Float[Array, "K 3"]
     radiance: Float[Array, "K 3"]
-    pdf_area: Float[Array, "K"]
-    light: Int[Array, "K"]
+    pdf_area: Float[Array, " K"]
+    light: Int[Array, " K"]
 
 
 def sample_quad_lights(lights: QuadLights, key: PRNGKeyArray, k: int = 20) -> QuadLightSamples:

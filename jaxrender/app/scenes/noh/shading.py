@@ -14,22 +14,22 @@ from jaxrender.fabric import MaterialSet, shade_fabric, shade_single_lobe
 class GarmentPoints(eqx.Module):
     """The garment's visible pixels (`index` into the flattened image) and their surface data."""
 
-    index: Int[Array, "G"]
+    index: Int[Array, " G"]
     position: Float[Array, "G 3"]
     frame: Float[Array, "G 3 3"]        # tangent, bitangent, normal (facing the viewer)
     wo: Float[Array, "G 3"]
     uv: Float[Array, "G 2"]             # BTF texture coordinates (mask uv x tiles) and their footprint
     duv_dx: Float[Array, "G 2"]
     duv_dy: Float[Array, "G 2"]
-    material: Int[Array, "G"]           # index into LABELS
+    material: Int[Array, " G"]           # index into LABELS
     colour: Float[Array, "G 3"]         # the mask's colour, rho_d of the plain weave
-    use_colour: Float[Array, "G"]       # 1 where the plain weave takes the mask's colour
+    use_colour: Float[Array, " G"]       # 1 where the plain weave takes the mask's colour
 
 
 class FloorPoints(eqx.Module):
     """The floor's visible pixels and its texels there."""
 
-    index: Int[Array, "P"]
+    index: Int[Array, " P"]
     position: Float[Array, "P 3"]
     wo: Float[Array, "P 3"]
     texel: BTFTexel
