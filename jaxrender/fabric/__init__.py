@@ -1,5 +1,6 @@
 """Woven fabric rendering (paper 004): a rasterized garment G-buffer, BTF pyramids of 1 or 2 lobes
-per texel with per-pixel mip selection, and shading under environment and firelight samples."""
+per texel with per-pixel mip selection, shading under environment and firelight samples, and the
+glossy planar reflection of a polished floor."""
 
 from ._raster import GBuffer as GBuffer
 from ._raster import Pinhole as Pinhole
@@ -8,6 +9,12 @@ from ._raster import depth_map as depth_map
 from ._raster import raster_window as raster_window
 from ._raster import rasterize as rasterize
 from ._raster import spot_pinhole as spot_pinhole
+from ._reflection import fresnel_schlick as fresnel_schlick
+from ._reflection import glossy_blur_pixels as glossy_blur_pixels
+from ._reflection import glossy_reflection as glossy_reflection
+from ._reflection import mirror_mesh as mirror_mesh
+from ._reflection import reflect_directions as reflect_directions
+from ._reflection import reflect_points as reflect_points
 from ._shading import MaterialSet as MaterialSet
 from ._shading import lookup_texels as lookup_texels
 from ._shading import mip_level as mip_level
