@@ -199,8 +199,8 @@ def project_rho(a: Float[Array, " L"], b: Float[Array, " L"], ratio_cl: Float[Ar
     return nnls2(saa, sab, sbb, har, hbr, ridge_of(w, ridge))
 
 
-def projected_cost_offset(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"], lights: Lights,
-                          model: str) -> Float[Array, ""]:
+def projected_cost_offset(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"],
+                          lights: Lights, model: str) -> Float[Array, ""]:
     """2 * projected objective - sum w R^2 = sum_c (rho_c^T (G + lam) rho_c - 2 rho_c^T h_c), from the sums of
     one pass (no residuals): enough to rank starting points (it cancels where the fit is close,
     so it is not the cost itself)."""
@@ -272,7 +272,8 @@ def gauss_newton(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Flo
     for c in range(3):
         cd = jnp.where(free_d[c], rho_d[c] * a_dx + rho_s[c] * a_dy, 0.0)   # (4,) coupling of rho_d_c
         cs = jnp.where(free_s[c], rho_d[c] * b_dx + rho_s[c] * b_dy, 0.0)
-        m = m - (gbb * jnp.outer(cd, cd) - gab[c] * (jnp.outer(cd, cs) + jnp.outer(cs, cd)) + gaa * jnp.outer(cs, cs)) / det[c]
+        m = m - (gbb * jnp.outer(cd, cd) - gab[c] * (jnp.outer(cd, cs) + jnp.outer(cs, cd))
+                 + gaa * jnp.outer(cs, cs)) / det[c]
     # residuals at the projected rho: cost and the exact gradient
     r = [ratio_cl[c] - rho_d[c] * a - rho_s[c] * b for c in range(3)]
     cost = 0.5 * jnp.sum(w * (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]))

@@ -104,7 +104,8 @@ def default_tolerances(dtype) -> tuple[float, float]:
 # the model's columns, for explicit geometry
 
 def basis(normal: Float[Array, "3"], sigma_x: Float[Array, ""], sigma_y: Float[Array, ""],
-          light_dirs: Float[Array, "L 3"], view_dir: Float[Array, "3"], *, model: str = "reciprocal") -> Float[Array, "L 2"]:
+          light_dirs: Float[Array, "L 3"], view_dir: Float[Array, "3"], *,
+          model: str = "reciprocal") -> Float[Array, "L 2"]:
     """Columns (a, b) of the model: R = rho_d a + rho_s b, per channel (`normal` a unit vector).
 
     The same terms as `jaxrender.brdf.reflectance` of a one-lobe texel (tested equal), evaluated
@@ -377,8 +378,9 @@ def _solve_native(fn, theta0, args, max_steps, rtol, atol):
 
     One pass over the lights per step gives cost, gradient g and Gauss-Newton matrix M at the
     trial point together (`gauss_newton`); the damped step solves (M + lam I) d = -g by an
-    unrolled Cholesky. Termination on an accepted step as optimistix's: |d_i| <= atol + rtol |theta_i| and a
-    cost change <= atol + rtol cost; or when no step can reduce the cost any more in the working precision (a stationary point).
+    unrolled Cholesky. Termination on an accepted step as optimistix's: |d_i| <= atol + rtol |theta_i|
+    and a cost change <= atol + rtol cost; or when no step can reduce the cost any more in the working
+    precision (a stationary point).
     """
     dt = theta0.dtype
     ratio_cl, w, lights = args
@@ -487,7 +489,8 @@ def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_
     if pad_l:
         ratio = jnp.pad(ratio, ((0, 0), (0, pad_l), (0, 0)))
         weight = jnp.pad(weight, ((0, 0), (0, pad_l)))
-        light_dirs = jnp.concatenate([light_dirs, jnp.tile(jnp.asarray([[0.0, 0.0, 1.0]], light_dirs.dtype), (pad_l, 1))])
+        up = jnp.asarray([[0.0, 0.0, 1.0]], light_dirs.dtype)
+        light_dirs = jnp.concatenate([light_dirs, jnp.tile(up, (pad_l, 1))])
     if pad_t:
         ratio = jnp.concatenate([ratio, jnp.repeat(ratio[-1:], pad_t, axis=0)])
         weight = jnp.concatenate([weight, jnp.repeat(weight[-1:], pad_t, axis=0)])

@@ -366,7 +366,8 @@ def synth_capture(out_dir: str | os.PathLike, *, key: PRNGKeyArray, size: tuple[
     from tqdm.auto import tqdm
 
     out_dir = Path(out_dir)
-    if out_dir.exists() and (not out_dir.is_dir() or (any(out_dir.iterdir()) and not (out_dir / "capture.json").is_file())):
+    if out_dir.exists() and (not out_dir.is_dir()
+                             or (any(out_dir.iterdir()) and not (out_dir / "capture.json").is_file())):
         raise InputError(out_dir, "exists and is not an empty directory or a previous capture; choose a new one")
     if image_format not in ("png", "exr"):
         raise InputError(None, f"unknown image format {image_format!r} (png or exr)")
@@ -446,7 +447,8 @@ def synth_capture(out_dir: str | os.PathLike, *, key: PRNGKeyArray, size: tuple[
             "exposures_s": list(EXPOSURES_S), "view": {"theta_deg": 0.0, "phi_deg": 0.0},
             "white": {"reflectance": refl_list[0] if len(set(refl_list)) == 1 else refl_list, "images": white_names},
             "lights": light_entries,
-            "synth": {"model": model, "bits": bits, "noise": sensor.noise, "sensor": {f.name: getattr(sensor, f.name) for f in dataclasses.fields(sensor)},
+            "synth": {"model": model, "bits": bits, "noise": sensor.noise,
+                      "sensor": {f.name: getattr(sensor, f.name) for f in dataclasses.fields(sensor)},
                       "light_indices": [int(i) for i in ids]},
         }
         with atomic_path(tmp / "capture.json") as path:

@@ -26,7 +26,8 @@ from jaxtyping import Array, ArrayLike, Float
 from .maths import dot, normalize, safe_div
 
 __all__ = ["Lobe", "BTFTexel", "MODELS", "SIGMA_FLOOR", "COS_FLOOR", "tangent_frame", "slope_distribution",
-           "slope_distribution_from_components", "specular_factor", "lobe_reflectance", "reflectance", "brdf", "half_vector", "diffuse_normal"]
+           "slope_distribution_from_components", "specular_factor", "lobe_reflectance", "reflectance", "brdf",
+           "half_vector", "diffuse_normal"]
 
 MODELS = ("reciprocal", "paper")
 SIGMA_FLOOR = 1e-3  # slopes below this are numerically a mirror; the fit floors sigma here
@@ -86,7 +87,8 @@ class BTFTexel(eqx.Module):
         return out
 
 
-def tangent_frame(normal: Float[ArrayLike, "... 3"]) -> tuple[Float[Array, "... 3"], Float[Array, "... 3"], Float[Array, "... 3"]]:
+def tangent_frame(normal: Float[ArrayLike, "... 3"]
+                  ) -> tuple[Float[Array, "... 3"], Float[Array, "... 3"], Float[Array, "... 3"]]:
     """(T, B, N): T = the sample x axis projected onto N's tangent plane, B = N x T."""
     n = normalize(normal)
     x = jnp.zeros_like(n).at[..., 0].set(1.0)

@@ -21,7 +21,8 @@ def _wrap_index(i: Array, n: int, wrap: str) -> Array:
     raise ValueError(f"unknown wrap mode {wrap!r}: use 'clamp' or 'repeat'")
 
 
-def bilinear(texture: Float[Array, "H W C"], uv: Float[ArrayLike, "... 2"], *, wrap: str = "clamp") -> Float[Array, "... C"]:
+def bilinear(texture: Float[Array, "H W C"], uv: Float[ArrayLike, "... 2"], *,
+             wrap: str = "clamp") -> Float[Array, "... C"]:
     """Bilinear lookup at continuous texture coordinates; differentiable in `texture` and `uv`."""
     texture = jnp.asarray(texture)
     uv = jnp.asarray(uv)
@@ -41,7 +42,8 @@ def bilinear(texture: Float[Array, "H W C"], uv: Float[ArrayLike, "... 2"], *, w
     return top * (1 - fy) + bottom * fy
 
 
-def nearest(texture: Float[Array, "H W C"], uv: Float[ArrayLike, "... 2"], *, wrap: str = "clamp") -> Float[Array, "... C"]:
+def nearest(texture: Float[Array, "H W C"], uv: Float[ArrayLike, "... 2"], *,
+            wrap: str = "clamp") -> Float[Array, "... C"]:
     """Nearest-texel lookup (e.g. shadow-map depths, which must not be blended)."""
     texture = jnp.asarray(texture)
     uv = jnp.asarray(uv)
@@ -67,8 +69,8 @@ def mip_pyramid(texture: Float[Array, "H W C"], *, levels: int | None = None) ->
     return tuple(pyramid)
 
 
-def trilinear(pyramid: tuple[Float[Array, "h w C"], ...], uv: Float[ArrayLike, "... 2"], level: Float[ArrayLike, "..."], *,
-              wrap: str = "clamp") -> Float[Array, "... C"]:
+def trilinear(pyramid: tuple[Float[Array, "h w C"], ...], uv: Float[ArrayLike, "... 2"],
+              level: Float[ArrayLike, "..."], *, wrap: str = "clamp") -> Float[Array, "... C"]:
     """Bilinear in each level, linear between the two levels around the continuous `level`."""
     level = jnp.clip(jnp.asarray(level), 0.0, len(pyramid) - 1.0)
     out = 0.0

@@ -128,7 +128,8 @@ def _texel_index(env: EnvMap, uv: Array) -> tuple[Array, Array]:
     return j, i
 
 
-def env_radiance(env: EnvMap, direction: Float[ArrayLike, "... 3"], *, filter: str = "nearest") -> Float[Array, "... 3"]:
+def env_radiance(env: EnvMap, direction: Float[ArrayLike, "... 3"], *,
+                 filter: str = "nearest") -> Float[Array, "... 3"]:
     """Radiance arriving from `direction` (pointing away from the scene, toward the sky).
 
     `nearest`: the piecewise-constant map that is sampled and lit with. `mitsuba`: Mitsuba 3's

@@ -48,7 +48,8 @@ def cone_angle(local: Float[ArrayLike, "*B 3"]) -> Float[Array, "*B"]:
     side_ok = ~near_axis & (rxy > 0)
     safe_r = jnp.where(side_ok, rxy, 1.0)
     t_axis = atan_nonneg(jnp.where(near_axis, rxy / safe_z, 0.0))
-    t_side = 0.5 * jnp.pi - jnp.sign(z) * atan_nonneg(jnp.where(side_ok, jnp.abs(z) / safe_r, jnp.where(near_axis, 0.0, 1e30)))
+    tan_side = jnp.where(side_ok, jnp.abs(z) / safe_r, jnp.where(near_axis, 0.0, 1e30))
+    t_side = 0.5 * jnp.pi - jnp.sign(z) * atan_nonneg(tan_side)
     theta = jnp.where(near_axis, t_axis, t_side)
     return theta
 
@@ -77,7 +78,8 @@ class SpotLight(eqx.Module):
         self.beam_width_deg = (0.75 * self.cutoff_deg if beam_width_deg is None
                                else jnp.asarray(beam_width_deg, dtype=float))
         intensity = jnp.asarray(intensity, dtype=float)
-        self.intensity = jnp.broadcast_to(intensity, self.position.shape[:-1] + (3,)) if intensity.ndim == 0 else intensity
+        self.intensity = (jnp.broadcast_to(intensity, self.position.shape[:-1] + (3,)) if intensity.ndim == 0
+                          else intensity)
         self.light_map = jnp.ones((1, 1, 3)) if light_map is None else jnp.asarray(light_map, dtype=float)
 
     # -- frame ---------------------------------------------------------------------------------

@@ -40,4 +40,5 @@ class Sun(eqx.Module):
         along the Kasten-Young air mass (redder when low)."""
         m = _air_mass(elevation_deg)
         colour = [intensity * math.exp(-(tau + _AEROSOL_TAU) * m) for tau in _RAYLEIGH_TAU]
-        return cls(jnp.asarray(sun_direction(elevation_deg, azimuth_deg), dtype=float), jnp.asarray(colour, dtype=float))
+        return cls(jnp.asarray(sun_direction(elevation_deg, azimuth_deg), dtype=float),
+                   jnp.asarray(colour, dtype=float))

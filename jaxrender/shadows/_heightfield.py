@@ -18,7 +18,8 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 __all__ = ["heightfield_light", "heightfield_shadow", "triangle_height"]
 
 
-def triangle_height(z: Float[ArrayLike, "Ny Nx"], xy: Float[ArrayLike, "... 2"], *, spacing: float = 1.0) -> Float[Array, "..."]:
+def triangle_height(z: Float[ArrayLike, "Ny Nx"], xy: Float[ArrayLike, "... 2"], *,
+                    spacing: float = 1.0) -> Float[Array, "..."]:
     """Height of the triangulated surface (diagonal from (i, j) to (i+1, j+1) in each cell) at
     world xy, clamped to the grid."""
     z = jnp.asarray(z)
@@ -92,8 +93,9 @@ def _depth(z, points, light_dir, spacing, n_steps, bias):
     return depth, has_flat, slope
 
 
-def heightfield_shadow(z: Float[ArrayLike, "Ny Nx"], points: Float[ArrayLike, "... 3"], light_dir: Float[ArrayLike, "3"], *,
-                       spacing: float = 1.0, n_steps: int = 64, bias: float = 1e-4) -> Bool[Array, "..."]:
+def heightfield_shadow(z: Float[ArrayLike, "Ny Nx"], points: Float[ArrayLike, "... 3"],
+                       light_dir: Float[ArrayLike, "3"], *, spacing: float = 1.0, n_steps: int = 64,
+                       bias: float = 1e-4) -> Bool[Array, "..."]:
     """True where the ray from `points` toward the distant light `light_dir` (unit, z up) passes
     below the heightfield at one of the next `n_steps` crossings of each family of grid lines.
 
@@ -104,8 +106,8 @@ def heightfield_shadow(z: Float[ArrayLike, "Ny Nx"], points: Float[ArrayLike, ".
     return has_flat & (depth > 0) | (jnp.asarray(light_dir)[2] <= 0)
 
 
-def heightfield_light(z: Float[ArrayLike, "Ny Nx"], points: Float[ArrayLike, "... 3"], light_dir: Float[ArrayLike, "3"], *,
-                      spacing: float = 1.0, n_steps: int = 64, bias: float = 1e-4,
+def heightfield_light(z: Float[ArrayLike, "Ny Nx"], points: Float[ArrayLike, "... 3"],
+                      light_dir: Float[ArrayLike, "3"], *, spacing: float = 1.0, n_steps: int = 64, bias: float = 1e-4,
                       footprint: float | Float[ArrayLike, "..."] = 0.0) -> Float[Array, "..."]:
     """The lit fraction of `heightfield_shadow`'s test over a shading footprint: 1 where the test
     says unblocked, 0 where the ray passes deeper below the surface than one footprint's worth,

@@ -78,7 +78,8 @@ def shadow_uv_distance(sm: ShadowMap, points: Float[ArrayLike, "*B 3"]
     points = jnp.asarray(points)
     rel = points - jnp.broadcast_to(sm.position, points.shape)
     R = sm.rotation
-    local = jnp.stack([rel[..., 0] * R[i, 0] + rel[..., 1] * R[i, 1] + rel[..., 2] * R[i, 2] for i in range(3)], axis=-1)
+    local = jnp.stack([rel[..., 0] * R[i, 0] + rel[..., 1] * R[i, 1] + rel[..., 2] * R[i, 2] for i in range(3)],
+                      axis=-1)
     z = local[..., 2]
     front = z > 1e-9
     scale = 0.5 / (jnp.where(front, z, 1.0) * sm.tan_cutoff)
