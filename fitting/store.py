@@ -130,7 +130,8 @@ def open_store(store_dir: str | os.PathLike) -> ObservationStore:
     if not isinstance(info, dict) or info.get("format") != STORE_FORMAT:
         raise InputError(marker, f"not an observation store (format must be {STORE_FORMAT!r})")
     if info.get("version") != STORE_VERSION:
-        raise InputError(marker, f"unsupported store version {info.get('version')!r} (this reader knows {STORE_VERSION})")
+        raise InputError(marker, f"unsupported store version {info.get('version')!r} "
+                                 f"(this reader knows {STORE_VERSION})")
     try:
         return ObservationStore(store_dir, info)
     except (KeyError, ValueError, FileNotFoundError) as error:

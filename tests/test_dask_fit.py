@@ -1,0 +1,92 @@
+"""The fit of a store as Dask tasks: a LocalCluster of 2 worker processes gives the maps of one
+process bit for bit, and a worker killed (SIGKILL) mid-run does not fail the fit."""
+
+import os
+import signal
+import threading
+import time
+
+import jax
+import numpy as np
+import pytest
+
+distributed = pytest.importorskip("distributed")
+
+from fitting import fit_store, ingest_capture, synth_capture  # noqa: E402
+from jaxrender.io import read_btf  # noqa: E402
+
+CHUNK = 8  # 8 x 8 texels: 8 tiles, 8 tasks
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    root = tmp_path_factory.mktemp("dask")
+    capture = synth_capture(root / "capture", key=jax.random.key(11), size=(8, 8), lights=40, progress=False)
+    store = ingest_capture(capture, root / "store", dtype="float32", tile=CHUNK, progress=False)
+    # One persistent compilation cache for this process and the workers (they inherit the
+    # environment): the tile program is compiled once, here, and loaded by every worker.
+    cache = str(root / "jax-cache")
+    saved = {name: getattr(jax.config, name) for name in ("jax_compilation_cache_dir",
+                                                       "jax_persistent_cache_min_compile_time_secs",
+                                                       "jax_persistent_cache_min_entry_size_bytes")}
+    jax.config.update("jax_compilation_cache_dir", cache)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    env = {"JAX_COMPILATION_CACHE_DIR": cache, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+           "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "0"}
+    old_env = {name: os.environ.get(name) for name in env}
+    os.environ.update(env)
+    try:
+        with jax.enable_x64(False):  # float32 observations, as `fitting fit` runs
+            fit_store(store, root / "btf_one", chunk=CHUNK, pyramid=False, progress=False)
+    finally:
+        for name, value in saved.items():
+            jax.config.update(name, value)
+    _, ref = read_btf(root / "btf_one")
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
+    client = distributed.Client(cluster)
+    yield root, store, ref[0], client
+    client.close()
+    cluster.close()
+    for name, value in old_env.items():
+        os.environ.pop(name) if value is None else os.environ.__setitem__(name, value)
+
+
+def _assert_same(btf_dir, ref):
+    _, got = read_btf(btf_dir)
+    for name in ref:
+        np.testing.assert_array_equal(got[0][name], ref[name], err_msg=name)
+
+
+def test_two_workers_give_the_single_process_maps(setup):
+    root, store, ref, client = setup
+    fit_store(store, root / "btf_two", chunk=CHUNK, pyramid=False, progress=False, scheduler=client)
+    manifest, _ = read_btf(root / "btf_two")
+    assert manifest["scheduler"].startswith("dask client")
+    _assert_same(root / "btf_two", ref)
+
+
+def test_a_killed_worker_does_not_fail_the_fit(setup):
+    root, store, ref, client = setup
+    out = root / "btf_killed"
+    pids = client.run(os.getpid)  # worker address -> pid
+    victim = sorted(pids.values())[0]
+    errors = []
+
+    def run():
+        try:
+            fit_store(store, out, chunk=CHUNK, pyramid=False, progress=False, scheduler=client)
+        except BaseException as error:  # reported below
+            errors.append(error)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    deadline = time.monotonic() + 300
+    while not list((out / ".partial").glob("chunk_*.npz")) and time.monotonic() < deadline and thread.is_alive():
+        time.sleep(0.01)
+    assert len(list((out / ".partial").glob("chunk_*.npz"))) < 8, "the fit finished before the kill"
+    os.kill(victim, signal.SIGKILL)
+    thread.join(600)
+    assert not thread.is_alive() and not errors, errors
+    assert victim not in client.run(os.getpid).values()  # that worker is gone (the nanny started another)
+    _assert_same(out, ref)
