@@ -160,3 +160,78 @@ def test_relaxation_gradient_matches_finite_differences():
     np.testing.assert_allclose(float(jvp), float(fd), rtol=1e-5)
     g = jax.grad(f)(h)
     np.testing.assert_allclose(float(jnp.sum(g * v)), float(jvp), rtol=1e-10)
+
+
+def _terrain(texels=16, levels=2):
+    from jaxrender.terrain import build_terrain_maps
+
+    rng = np.random.default_rng(7)
+    y, x = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
+    dune = 0.8 * np.sin(2 * np.pi * x / 8) * np.cos(2 * np.pi * y / 8) + 0.05 * rng.standard_normal((8, 8))
+    ry, rx = np.meshgrid(np.arange(16), np.arange(16), indexing="ij")
+    ripple = 0.006 * np.sin(2 * np.pi * (rx + 0.25 * ry) / 8.0)
+    return build_terrain_maps(jnp.asarray(dune), jnp.asarray(ripple), key=jax.random.key(0), spacing=1.0,
+                              texels=texels, levels=levels), jnp.asarray(ripple)
+
+
+def _shade(maps, level):
+    from jaxrender.lights import Sun, sun_direction
+
+    sun = Sun(jnp.asarray(sun_direction(12.0, 200.0)), jnp.asarray([3.0, 2.8, 2.5]))
+    visible = jnp.ones(maps.quads, bool)
+    lev = jnp.full(maps.quads, level, jnp.int32)
+    count = maps.quads[0] * maps.quads[1]
+    caps = tuple(count if i == level else 0 for i in range(maps.levels))
+    tiles, _ = _shade_jit(maps, visible, lev, sun, jnp.asarray([0.6, 0.36, 0.18]), jnp.asarray([0.3, 0.4, 0.6]),
+                          capacities=caps, shadow_steps=8)
+    return np.asarray(tiles[level])
+
+
+def _shade_jit(*args, **kwargs):
+    from jaxrender.terrain import shade_quads
+
+    global _SHADE
+    if _SHADE is None:
+        _SHADE = jax.jit(shade_quads, static_argnames=("capacities", "shadow_steps"))
+    return _SHADE(*args, **kwargs)
+
+
+_SHADE = None
+
+
+def test_footprint_detail_window_is_shaded_like_the_ripples_until_pressed():
+    """A detail window holding the very ripples it covers shades exactly as without it; with a
+    print pressed in, only the window's quad changes, at both levels of detail, and under a low
+    sun the print's walls cast horizon-map shadows. (One 16 x 16-texel quad: the horizon map
+    compiles once for the ripple map and the window.)"""
+    from jaxrender.shadows import horizon_light
+    from jaxrender.terrain import build_detail_maps, window_ripples, with_detail
+
+    maps, ripple = _terrain()
+    assert maps.quads == (8, 8)      # the periodic 8 x 8 dune field closed into 8 x 8 quads
+    origin, quads = (2, 3), (1, 1)
+    plain = window_ripples(ripple, origin, quads, texels=16)
+    np.testing.assert_array_equal(plain, ripple)  # a 16-texel quad shows one whole ripple period
+    detail = build_detail_maps(plain, origin, spacing=1.0, texels=16, levels=2)
+    foot = FootParams(length=0.6, width=0.25, depth=0.05, rim=0.1)
+    pressed = jax.jit(lambda h: relax_to_repose(press_footprint(h, jnp.asarray([0.5, 0.5]), jnp.asarray(0.3), foot,
+                                                                spacing=1 / 16), spacing=1 / 16, iterations=300))(plain)
+    printed = build_detail_maps(pressed, origin, spacing=1.0, texels=16, levels=2)
+    window = np.zeros((8, 8), bool)  # quads (row qj, column qi) inside the window
+    window[3, 2] = True
+    base = _shade(maps, 0)
+    np.testing.assert_allclose(_shade(with_detail(maps, detail), 0), base, atol=1e-12)
+    for level in (0, 1):
+        ref = _shade(with_detail(maps, detail), level)
+        prints = _shade(with_detail(maps, printed), level)
+        ref, prints = (a.reshape((8, 8) + a.shape[1:]) for a in (ref, prints))
+        np.testing.assert_array_equal(prints[~window], ref[~window])
+        assert np.abs(prints[window] - ref[window]).max() > 0.05 * ref.max()
+    # shadows: the lit fraction (horizon test alone, sun 12 deg up) drops once the print is there
+    light = jnp.asarray([np.cos(np.radians(12)), 0.0, np.sin(np.radians(12))])
+
+    def lit(d):
+        return np.asarray(horizon_light(jnp.moveaxis(d.horizon[0], -1, 0), jnp.moveaxis(d.horizon_band[0], -1, 0),
+                                        jnp.broadcast_to(light, d.horizon[0].shape[:2] + (3,))))
+
+    assert lit(printed).mean() < lit(detail).mean() - 0.01

@@ -25,25 +25,26 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ..maths import normalize
 from ..camera import Camera
 from ..lights import Sun
-from ..shadows import heightfield_light, triangle_height
-from ..shadows import horizon_band, horizon_light, horizon_map
+from ..maths import normalize
+from ..shadows import heightfield_light, horizon_band, horizon_light, horizon_map, triangle_height
 from ..textures import bilinear, downsample2
+from ._detail import DetailMaps
 from ._dune import close_periodic, ray_cast_coherent, vertex_normals
 from ._grain import sand_grain_texture
 from ._lod import quad_levels, quad_screen_area, quad_visibility
 from ._normals import normal_pyramid, ripple_normal_map
 
 __all__ = ["TerrainMaps", "build_terrain_maps", "plan_quads", "quad_capacities", "shade_quads", "render_terrain",
-           "shadow_steps"]
+           "shadow_steps", "with_detail"]
 
 
 class TerrainMaps(eqx.Module):
     """Everything precomputed per scene: dune vertices and normals, and per ripple level the
     normal map, grain albedo, horizon map and its per-texel slope band (level l has R / 2^l
-    texels across)."""
+    texels across); optionally a window of quads with its own micro relief (`detail`, the
+    footprints: `with_detail`)."""
 
     z: Float[Array, "Ny Nx"]
     normals: Float[Array, "Ny Nx 3"]
@@ -53,6 +54,7 @@ class TerrainMaps(eqx.Module):
     horizon_band: tuple[Float[Array, "r r D"], ...]
     spacing: float = eqx.field(static=True)
     texels: int = eqx.field(static=True)
+    detail: DetailMaps | None = None
 
     @property
     def levels(self) -> int:
@@ -86,6 +88,17 @@ def build_terrain_maps(dune_z: Float[ArrayLike, "N M"], ripple_z: Float[ArrayLik
         hor.append(downsample2(hor[-1]))
     band = tuple(jnp.moveaxis(horizon_band(jnp.moveaxis(h, -1, 0)), 0, -1) for h in hor)
     return TerrainMaps(z, vertex_normals(z, spacing=spacing), normals, tuple(grain), tuple(hor), band, spacing, texels)
+
+
+def with_detail(maps: TerrainMaps, detail: DetailMaps | None) -> TerrainMaps:
+    """The maps with the quads of `detail`'s window shaded from its relief (None: ripples only)."""
+    if detail is not None:
+        (qi0, qj0), (nx, ny) = detail.origin, detail.quads
+        nqy, nqx = maps.quads
+        if qi0 < 0 or qj0 < 0 or qi0 + nx > nqx or qj0 + ny > nqy or len(detail.normals) != maps.levels:
+            raise ValueError(f"detail window {detail.quads} at quad {detail.origin} with {len(detail.normals)} levels "
+                             f"does not fit {maps.quads} quads with {maps.levels} levels")
+    return eqx.tree_at(lambda m: m.detail, maps, detail, is_leaf=lambda x: x is None)
 
 
 def shadow_steps(maps: TerrainMaps, sun_elevation_deg: float) -> int:
@@ -179,8 +192,18 @@ def _shade_level(maps: TerrainMaps, ids: Array, l: int, sun: Sun, albedo: Array,
         xy = jnp.stack([(qi.astype(dtype) + frac_x) * maps.spacing, (qj.astype(dtype) + frac_y) * maps.spacing], axis=-1)
         row = jnp.mod(qj * n + a, r)
         col = jnp.mod(qi * n + bb, r)
-        return _shade_points(maps, xy, maps.ripple_normals[l][row, col], maps.grain[l][row, col],
-                             maps.horizon[l][row, col], maps.horizon_band[l][row, col], sun, albedo, sky, flags,
+        normal, hor = maps.ripple_normals[l][row, col], maps.horizon[l][row, col]
+        band = maps.horizon_band[l][row, col]
+        if maps.detail is not None:  # a quad inside the detail window reads the window's own relief
+            d = maps.detail
+            di, dj = qi - d.origin[0], qj - d.origin[1]
+            inside = (di >= 0) & (di < d.quads[0]) & (dj >= 0) & (dj < d.quads[1])
+            drow = jnp.clip(dj, 0, d.quads[1] - 1) * n + a
+            dcol = jnp.clip(di, 0, d.quads[0] - 1) * n + bb
+            normal = jnp.where(inside, d.normals[l][drow, dcol], normal)
+            hor = jnp.where(inside, d.horizon[l][drow, dcol], hor)
+            band = jnp.where(inside, d.horizon_band[l][drow, dcol], band)
+        return _shade_points(maps, xy, normal, maps.grain[l][row, col], hor, band, sun, albedo, sky, flags,
                              maps.spacing / n)
 
     return jax.lax.map(one, ids, batch_size=max(1, min(batch, ids.shape[0])))
