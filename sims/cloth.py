@@ -41,11 +41,11 @@ __all__ = ["ClothMesh", "ClothSprings", "cloth_springs", "cloth_energy", "simula
 
 
 class ClothSprings(eqx.Module):
-    i: Int[Array, "S"]
-    j: Int[Array, "S"]
-    rest: Float[Array, "S"]
-    stiffness: Float[Array, "S"]
-    kind: Int[Array, "S"]  # 0 structural, 1 shear, 2 bend
+    i: Int[Array, " S"]
+    j: Int[Array, " S"]
+    rest: Float[Array, " S"]
+    stiffness: Float[Array, " S"]
+    kind: Int[Array, " S"]  # 0 structural, 1 shear, 2 bend
 
 
 class ClothMesh(eqx.Module):
@@ -96,10 +96,10 @@ def cloth_energy(x: Float[Array, "N 3"], x_prev: Float[Array, "N 3"], springs: C
     return kinetic + potential + elastic
 
 
-def simulate_cloth(x0: Float[Array, "N 3"], springs: ClothSprings, pinned: Float[Array, "N"], *, steps: int,
+def simulate_cloth(x0: Float[Array, "N 3"], springs: ClothSprings, pinned: Float[Array, " N"], *, steps: int,
                    dt: float, mass: float, damping: float, gravity: float = 9.81,
                    record_every: int = 0, capsule: Float[Array, "5"] | None = None
-                   ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"], Float[Array, "E"]]:
+                   ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"], Float[Array, " E"]]:
     """Run `steps` Verlet steps from rest at `x0`; pinned particles (pinned = 1) never move.
 
     `capsule` = (x, z, radius, y_min, y_max): a vertical capsule the particles are pushed out of
@@ -201,7 +201,7 @@ class BodyMotion(eqx.Module):
         lift = self.arm_lift * 0.5 * (1.0 - jnp.cos(2 * jnp.pi * t / self.arm_period))
         return theta, sway, lift
 
-    def pins(self, rest: Float[Array, "P 3"], hand: Float[Array, "P"], t: Float[Array, ""]) -> Float[Array, "P 3"]:
+    def pins(self, rest: Float[Array, "P 3"], hand: Float[Array, " P"], t: Float[Array, ""]) -> Float[Array, "P 3"]:
         """Positions of the pinned points at time t (class docstring)."""
         theta, sway, lift = self.pose(t)
         dtype = rest.dtype
@@ -226,9 +226,9 @@ class DrapedCloth(eqx.Module):
 
     state: ClothState
     springs: ClothSprings
-    pin_index: Int[Array, "P"]        # the pinned particles: two shoulders, then two hands
+    pin_index: Int[Array, " P"]        # the pinned particles: two shoulders, then two hands
     pin_rest: Float[Array, "P 3"]     # their positions at t = 0
-    hand: Float[Array, "P"]           # 1 for a hand pin, 0 for a shoulder
+    hand: Float[Array, " P"]           # 1 for a hand pin, 0 for a shoulder
     capsule: Float[Array, "5"]        # the body at t = 0
     uv: Float[Array, "R C 2"]
     triangles: Int[Array, "T 3"]

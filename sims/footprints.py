@@ -148,7 +148,7 @@ def repose_excess(height: Float[Array, "H W"], *, spacing: float = 1.0,
 
 
 def trail_steps(waypoints: Float[ArrayLike, "P 2"], *, stride: float = 0.7, gait: float = 0.16,
-                first: float | None = None) -> tuple[Float[Array, "K 2"], Float[Array, "K"]]:
+                first: float | None = None) -> tuple[Float[Array, "K 2"], Float[Array, " K"]]:
     """Footprint centres and headings of a walk along the polyline `waypoints`: one print every
     `stride` / 2 of arc length (starting `first` in, default a quarter stride), alternately left
     and right of the path by `gait` / 2, each pointing along the path."""
@@ -170,7 +170,7 @@ def trail_steps(waypoints: Float[ArrayLike, "P 2"], *, stride: float = 0.7, gait
     return centres, heading
 
 
-def press_trail(height: Float[Array, "H W"], centres: Float[Array, "K 2"], headings: Float[Array, "K"],
+def press_trail(height: Float[Array, "H W"], centres: Float[Array, "K 2"], headings: Float[Array, " K"],
                 foot: FootParams = FootParams(), *, spacing: float = 1.0, iterations: int = 200,
                 rate: float = 0.1) -> Float[Array, "H W"]:
     """Press every print in order (a later print overlapping an earlier one presses into it),

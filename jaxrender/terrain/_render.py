@@ -189,7 +189,8 @@ def _shade_level(maps: TerrainMaps, ids: Array, l: int, sun: Sun, albedo: Array,
 
     def one(q):
         qj, qi = q // nqx, q % nqx
-        xy = jnp.stack([(qi.astype(dtype) + frac_x) * maps.spacing, (qj.astype(dtype) + frac_y) * maps.spacing], axis=-1)
+        xy = jnp.stack([(qi.astype(dtype) + frac_x) * maps.spacing, (qj.astype(dtype) + frac_y) * maps.spacing],
+                       axis=-1)
         row = jnp.mod(qj * n + a, r)
         col = jnp.mod(qi * n + bb, r)
         normal, hor = maps.ripple_normals[l][row, col], maps.horizon[l][row, col]
