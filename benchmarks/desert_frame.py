@@ -36,7 +36,8 @@ def main() -> None:
     scene_s = time.perf_counter() - start
     camera = D.default_camera(scene, width=w, height=h)
     rows = []
-    for name, lod, culling in [("LOD + culling", True, True)] + ([] if args.no_peer else [("no LOD, no culling", False, False)]):
+    configs = [("LOD + culling", True, True)] + ([] if args.no_peer else [("no LOD, no culling", False, False)])
+    for name, lod, culling in configs:
         kw = dict(lod=lod, culling=culling)
         c, t = timed(lambda: D.desert_frame(scene, camera, **kw), args.repeats if lod else 1)
         rows.append((name, c, t))
@@ -46,8 +47,8 @@ def main() -> None:
             write_png(FIG / ("desert_frame_quick.png" if args.quick else "desert_frame.png"),
                       D.to_display(D.desert_frame(scene, camera, **kw)), srgb=False)
     print()
-    print(f"{w}x{h}, {size['dune_size']}^2 dune quads, ripple maps up to {size['texels']}^2 per quad, both shadows, dust; "
-          f"scene build (automata + maps) {scene_s:.1f} s")
+    print(f"{w}x{h}, {size['dune_size']}^2 dune quads, ripple maps up to {size['texels']}^2 per quad, "
+          f"both shadows, dust; scene build (automata + maps) {scene_s:.1f} s")
     print("| frame | time after compilation (s) | compile (s) | ratio |")
     print("|---|---|---|---|")
     for name, c, t in rows:

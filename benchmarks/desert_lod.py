@@ -41,7 +41,8 @@ def main() -> None:
     albedo = jnp.asarray(D.SAND_ALBEDO, scene.maps.z.dtype)
     rows = []
     images = {}
-    for name, lod, culling in [("no culling, no LOD", False, False), ("culling", False, True), ("culling + LOD", True, True)]:
+    for name, lod, culling in [("no culling, no LOD", False, False), ("culling", False, True),
+                               ("culling + LOD", True, True)]:
         visible, level = plan_quads(scene.maps, camera, lod=lod, culling=culling)
         caps = quad_capacities(visible, level, scene.maps.levels)
         shade = jax.jit(lambda v, l, caps=caps: shade_quads(scene.maps, v, l, sun, albedo, sky_irr, capacities=caps,
@@ -58,9 +59,10 @@ def main() -> None:
     diff = np.abs(lod_img - ref) * 255
     same_cull = float(np.max(np.abs(images["culling"] - ref)) * 255)
     print()
-    print(f"{w}x{h}, {size['dune_size']}x{size['dune_size']} dune quads, ripple maps up to {size['texels']}^2 per quad, "
-          f"levels {[size['texels'] // 2**l for l in range(4)]}")
-    print("| configuration | quads per level (capacity) | texels shaded | bump mapping (s) | frame (s) | bump-mapping speed-up |")
+    print(f"{w}x{h}, {size['dune_size']}x{size['dune_size']} dune quads, "
+          f"ripple maps up to {size['texels']}^2 per quad, levels {[size['texels'] // 2**l for l in range(4)]}")
+    print("| configuration | quads per level (capacity) | texels shaded | bump mapping (s) | frame (s) "
+          "| bump-mapping speed-up |")
     print("|---|---|---|---|---|---|")
     base = rows[0][4]
     for name, caps, texels, c_shade, t_shade, t_frame in rows:

@@ -39,7 +39,8 @@ def main(argv=None) -> int:
     batch, steps = (2, 800) if args.quick else (4, 1500)
     print(f"dunes {batch} x 48x96, {steps} steps, L0=7 q0=1.5 b=2 b'=2, split hop, wind +x")
     print()
-    print("| D | initial depth | lee / windward mean slope (per field) | max height | speed (cells/step, + = downwind) |")
+    print("| D | initial depth | lee / windward mean slope (per field) | max height "
+          "| speed (cells/step, + = downwind) |")
     print("|---|---|---|---|---|")
     for D in (0.1, 0.2, 0.3, 0.5, 0.8):
         for lo, hi in ((1.0, 2.0), (2.0, 4.0)):

@@ -64,7 +64,8 @@ def main(argv: list[str] | None = None) -> dict:
     if len(counts) >= 4:  # plain and light-mapped lights cost differently: fit both slopes
         design = np.array([[1.0, k - maps[k], maps[k]] for k in counts])
         (a0, b_plain, b_map), *_ = np.linalg.lstsq(design, np.array([times[k] for k in counts]), rcond=None)
-        print(f"least squares: frame = {a0:.3f} s + {b_plain:.3f} s x plain lights + {b_map:.3f} s x light-mapped lights")
+        print(f"least squares: frame = {a0:.3f} s + {b_plain:.3f} s x plain lights "
+              f"+ {b_map:.3f} s x light-mapped lights")
         (a0, b_plain, b_map), *_ = np.linalg.lstsq(design, np.array([cpus[k] for k in counts]), rcond=None)
         print(f"least squares on CPU time: {a0:.3f} CPU s + {b_plain:.3f} CPU s x plain lights "
               f"+ {b_map:.3f} CPU s x light-mapped lights")

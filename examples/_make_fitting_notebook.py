@@ -40,7 +40,8 @@ normal_err = np.degrees(np.arccos(np.clip(np.sum(n_t * n_f, -1), -1, 1)))
 sigma_err = np.abs(maps["sigma_x"] / np.asarray(truth.lobe0.sigma_x) - 1)
 rho_d_err = np.abs(maps["rho_d"] - np.asarray(truth.rho_d)).max(-1)
 print(f"normal error: median {np.median(normal_err):.3f} deg, max {normal_err.max():.3f} deg")
-print(f"sigma_x relative error: median {np.median(sigma_err):.2%}; rho_d abs error: median {np.median(rho_d_err):.4f}")"""),
+print(f"sigma_x relative error: median {np.median(sigma_err):.2%}; "
+      f"rho_d abs error: median {np.median(rho_d_err):.4f}")"""),
     nbf.v4.new_code_cell("""fig, axes = plt.subplots(2, 4, figsize=(11, 5.5))
 pairs = [("rho_d", np.asarray(truth.rho_d), maps["rho_d"]),
          ("normal", 0.5 + 0.5 * n_t, 0.5 + 0.5 * n_f),
@@ -69,10 +70,12 @@ The lobe shape (sigma_x, sigma_y) is measured through the specular term only: wh
 (the cotton-like threads) the highlight is a small part of each observation and the 8-bit noise of
 the merge dominates it, so the slopes of weak-specular texels are the least constrained parameter.
 The residual map shows the noise floor rather than fit error."""),
-    nbf.v4.new_code_cell("""sig_true = np.minimum(np.asarray(truth.lobe0.sigma_x), np.asarray(truth.lobe0.sigma_y)).ravel()
+    nbf.v4.new_code_cell("""sig_true = np.minimum(np.asarray(truth.lobe0.sigma_x),
+                      np.asarray(truth.lobe0.sigma_y)).ravel()
 sig_rel = np.maximum(sigma_err, np.abs(maps["sigma_y"] / np.asarray(truth.lobe0.sigma_y) - 1)).ravel()
 fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
-axes[0].scatter(np.asarray(truth.lobe0.rho_s).mean(-1).ravel(), sig_rel, s=8); axes[0].set_xlabel("true rho_s (mean of RGB)"); axes[0].set_ylabel("relative slope error")
+axes[0].scatter(np.asarray(truth.lobe0.rho_s).mean(-1).ravel(), sig_rel, s=8)
+axes[0].set_xlabel("true rho_s (mean of RGB)"); axes[0].set_ylabel("relative slope error")
 axes[0].set_yscale("log")
 axes[1].imshow(maps["residual"], interpolation="nearest"); axes[1].set_title("residual (RMS)"); axes[1].axis("off")
 rs_true = np.asarray(truth.lobe0.rho_s).mean(-1).ravel()
@@ -84,5 +87,6 @@ summary = {"converged": float(np.mean(maps["converged"])), "normal_err_median_de
            "sigma_err_strong_specular": float(np.median(sig_rel[~weak])), "worst_texel": [int(worst[0]), int(worst[1])]}
 print(json.dumps(summary))"""),
 ]
-nb = nbf.v4.new_notebook(cells=cells, metadata={"kernelspec": {"name": "python3", "display_name": "Python 3", "language": "python"}})
+nb = nbf.v4.new_notebook(cells=cells, metadata={"kernelspec": {"name": "python3", "display_name": "Python 3",
+                                                               "language": "python"}})
 nbf.write(nb, Path(__file__).with_name("fitting.ipynb"))

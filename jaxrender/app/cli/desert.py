@@ -20,11 +20,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sun-elevation", type=float, default=18.0, help="sun elevation in degrees (default 18)")
     parser.add_argument("--sun-azimuth", type=float, default=165.0,
                         help="sun azimuth in degrees from +x (downwind) toward +y (default 165)")
-    for name, help_ in [("ripples", "bump-mapped wind ripples and sand grain"), ("lod", "level of detail per dune quad"),
+    for name, help_ in [("ripples", "bump-mapped wind ripples and sand grain"),
+                        ("lod", "level of detail per dune quad"),
                         ("culling", "back-face and view-frustum culling of dune quads"),
                         ("dune-shadows", "dune shadows (ray march toward the sun)"),
                         ("ripple-shadows", "ripple shadows (horizon maps)"), ("dust", "sand-dust billboards")]:
-        parser.add_argument(f"--{name}", action=argparse.BooleanOptionalAction, default=True, help=f"{help_} (default on)")
+        parser.add_argument(f"--{name}", action=argparse.BooleanOptionalAction, default=True,
+                            help=f"{help_} (default on)")
     parser.add_argument("--dune-size", type=int, default=64, help="dune grid size in quads (default 64)")
     parser.add_argument("--ripple-size", type=int, default=64, help="ripple map size in texels (default 64)")
     parser.add_argument("--texels", type=int, default=64, help="ripple texels per dune quad at level 0 (default 64)")
@@ -52,6 +54,7 @@ def run(args: argparse.Namespace) -> int:
                   dune_shadows=args.dune_shadows, ripple_shadows=args.ripple_shadows, dust=args.dust,
                   sun_elevation=args.sun_elevation, sun_azimuth=args.sun_azimuth, dune_size=args.dune_size,
                   ripple_size=args.ripple_size, texels=args.texels, seed=args.seed)
-    image = render_timed(lambda: render_desert(**kwargs), args.time)  # the first run grows the fields, builds the maps, compiles
+    # the first run grows the fields, builds the maps, compiles
+    image = render_timed(lambda: render_desert(**kwargs), args.time)
     write_image(out, np.asarray(image, dtype=np.float32), exposure=EXPOSURE)
     return 0

@@ -27,7 +27,8 @@ def add_common(parser: argparse.ArgumentParser, *, L0: float, b: float, D: float
     parser.add_argument("--seed", type=int, default=0, help="random seed of the initial field (default 0)")
     parser.add_argument("--init", type=Path, default=None, metavar="FIELD.npy",
                         help="continue from this height field (.npy or .exr) instead of a random one")
-    parser.add_argument("--out", type=Path, required=True, metavar="FIELD.npy", help="output height field: .npy or .exr")
+    parser.add_argument("--out", type=Path, required=True, metavar="FIELD.npy",
+                        help="output height field: .npy or .exr")
     parser.add_argument("--preview", type=Path, default=None, metavar="PNG", help="also write a shaded PNG preview")
 
 

@@ -17,7 +17,8 @@ def configure(parser):
     parser.add_argument("--view-theta", type=float, default=0.0, help="view elevation, degrees (default 0)")
     parser.add_argument("--view-phi", type=float, default=0.0, help="view azimuth, degrees (default 0)")
     parser.add_argument("--level", type=int, default=0, help="pyramid level (default 0)")
-    parser.add_argument("--out", required=True, metavar="IMG", help="output image: .exr (linear R) or .png (tone-mapped)")
+    parser.add_argument("--out", required=True, metavar="IMG",
+                        help="output image: .exr (linear R) or .png (tone-mapped)")
 
 
 def run(args) -> int:

@@ -39,7 +39,8 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix.lower() not in (".exr", ".png"):
         raise InputError(out, "output must end in .exr or .png")
     if args.method == "raymarch" and args.quantize_bits:
-        raise InputError(None, "--quantize-bits applies to --method planes only (the ray march is the unquantized reference)")
+        raise InputError(None, "--quantize-bits applies to --method planes only "
+                               "(the ray march is the unquantized reference)")
     for name in ("planes", "subplanes", "samples"):
         if getattr(args, name) < 1:
             raise InputError(None, f"--{name} must be >= 1")

@@ -41,7 +41,8 @@ def configure(parser):
     parser.add_argument("--size", nargs=2, type=_positive_int, default=[32, 32], metavar=("H", "W"),
                         help="texels (default 32 32)")
     parser.add_argument("--lights", type=_lights, default=300,
-                        help="'all' (the paper's 2160 directions) or N, a stratified subset chosen by the seed (default 300)")
+                        help="'all' (the paper's 2160 directions) or N, a stratified subset chosen by the seed "
+                             "(default 300)")
     parser.add_argument("--seed", type=int, default=0, help="random seed: maps, light subset and noise (default 0)")
     parser.add_argument("--bits", type=int, choices=(8, 16), default=8, help="PNG bit depth (default 8)")
     parser.add_argument("--format", choices=("png", "exr"), default="png", help="image format (default png)")

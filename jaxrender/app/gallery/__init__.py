@@ -84,8 +84,9 @@ def _page(result: dict) -> str:
         if section["error"]:
             parts.append(f'<pre class="error">{html.escape(section["error"])}</pre>')
         for entry in section["entries"]:
+            alt = html.escape(entry.get("title", ""))
             images = "".join(
-                f'<a href="{html.escape(p)}"><img src="{html.escape(p)}" alt="{html.escape(entry.get("title", ""))}"></a>'
+                f'<a href="{html.escape(p)}"><img src="{html.escape(p)}" alt="{alt}"></a>'
                 for p in entry.get("images", []) if p.lower().endswith((".png", ".gif", ".jpg")))
             exr = " ".join(f'<a href="{html.escape(p)}">{html.escape(Path(p).name)}</a>'
                            for p in entry.get("images", []) if p.lower().endswith(".exr"))
@@ -99,6 +100,9 @@ def _page(result: dict) -> str:
         parts.append("</section>")
     toc = " · ".join(f'<a href="#{n}">{html.escape(s["heading"])}</a>' for n, s in result["sections"].items())
     machine = f"{platform.platform()}, Python {platform.python_version()}"
+    sizes = "quick preview sizes" if result["quick"] else "built-in defaults"
+    meta = (f"{sizes}; {html.escape(machine)}; timings are wall-clock on this machine, "
+            "compile time reported apart where given.")
     return f"""<!doctype html>
 <html><head><meta charset="utf-8"><title>jaxrender gallery</title>
 <style>
@@ -110,7 +114,7 @@ th, td {{ border-bottom: 1px solid #ddd; padding: 2px 8px; text-align: left; }}
 .meta {{ color: #666; font-size: 90%; }} .error {{ color: #a00; background: #fee; padding: 1em; overflow-x: auto; }}
 </style></head><body>
 <h1>jaxrender gallery</h1>
-<p class="meta">{'quick preview sizes' if result['quick'] else 'built-in defaults'}; {html.escape(machine)}; timings are wall-clock on this machine, compile time reported apart where given.</p>
+<p class="meta">{meta}</p>
 <p>{toc}</p>
 {''.join(parts)}
 </body></html>

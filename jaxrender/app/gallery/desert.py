@@ -20,13 +20,14 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
     scene_kw = dict(ripple_size=32, texels=32) if quick else {}
     high, low = 25.0, 12.0
     figures = [
-        ("fig12_no_ripples", "Fig. 12: dunes without wind ripples", dict(ripples=False, dust=False, sun_elevation=high)),
-        ("fig13_ripples", "Fig. 13: dunes with wind ripples and sand grain (LOD, culling)", dict(dust=False, sun_elevation=high,
-                                                                                              dune_shadows=False, ripple_shadows=False)),
-        ("fig14_no_shadows", "Fig. 14: low sun, no shadows", dict(dust=False, sun_elevation=low, dune_shadows=False,
-                                                                  ripple_shadows=False)),
-        ("fig15_dune_shadows", "Fig. 15/16: low sun, dune shadows (no ripple shadows)", dict(dust=False, sun_elevation=low,
-                                                                                             ripple_shadows=False)),
+        ("fig12_no_ripples", "Fig. 12: dunes without wind ripples",
+         dict(ripples=False, dust=False, sun_elevation=high)),
+        ("fig13_ripples", "Fig. 13: dunes with wind ripples and sand grain (LOD, culling)",
+         dict(dust=False, sun_elevation=high, dune_shadows=False, ripple_shadows=False)),
+        ("fig14_no_shadows", "Fig. 14: low sun, no shadows",
+         dict(dust=False, sun_elevation=low, dune_shadows=False, ripple_shadows=False)),
+        ("fig15_dune_shadows", "Fig. 15/16: low sun, dune shadows (no ripple shadows)",
+         dict(dust=False, sun_elevation=low, ripple_shadows=False)),
         ("fig17_ripple_shadows", "Fig. 17: low sun, dune and ripple shadows", dict(dust=False, sun_elevation=low)),
         ("fig18_dust", "Fig. 18: with sand dust", dict(sun_elevation=high)),
     ]

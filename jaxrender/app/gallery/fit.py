@@ -88,7 +88,8 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
                 ax.set_title(cols[c], fontsize=9)
             if c == 0:
                 ax.set_ylabel(label)
-    diffs = [np.abs(np.asarray(fitted.rho_d - truth.rho_d)).max(-1), np.abs(np.asarray(fitted.lobe0.rho_s - truth.lobe0.rho_s)).max(-1),
+    diffs = [np.abs(np.asarray(fitted.rho_d - truth.rho_d)).max(-1),
+             np.abs(np.asarray(fitted.lobe0.rho_s - truth.lobe0.rho_s)).max(-1),
              ang, np.abs(np.asarray(fitted.lobe0.sigma_x - truth.lobe0.sigma_x)),
              np.abs(np.asarray(fitted.lobe0.sigma_y - truth.lobe0.sigma_y))]
     diffs += [np.abs(x[3] - x[2]).max(-1) for x in relit]
@@ -99,8 +100,9 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
         ax.set_xticks([]), ax.set_yticks([])
         if c == 0:
             ax.set_ylabel("|fit - truth|\n(normal: degrees)")
-    fig.suptitle(f"BTF fit of a synthetic capture ({size[0]}x{size[1]} texels, {n_lights} lights, 8-bit, 6 exposures): "
-                 f"fit {fit_s:.1f} s, converged {np.mean(maps['converged']):.1%}, median normal error {np.median(ang):.2f} deg",
+    fig.suptitle(f"BTF fit of a synthetic capture ({size[0]}x{size[1]} texels, {n_lights} lights, 8-bit, "
+                 f"6 exposures): fit {fit_s:.1f} s, converged {np.mean(maps['converged']):.1%}, "
+                 f"median normal error {np.median(ang):.2f} deg",
                  fontsize=10)
     fig.tight_layout()
     path = out_dir / "fitting_fit.png"

@@ -54,8 +54,8 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
         rms8 = float(np.sqrt(np.mean((img8 - np.clip(img, 0, 1)) ** 2)) * 255)
         entries.insert(1, {"title": "Same, 8-bit hardware emulation", "images": ["stage_planes_8bit.png"],
                            "caption": "Tables, light maps and frame buffer in 8-bit steps; RMS difference to float "
-                                      f"{rms8:.2f} of 255 levels. Faint fog far from the lights adds less than half an 8-bit "
-                                      "step per sample plane and so vanishes from the frame buffer, as on the paper's "
-                                      "hardware: the shafts fade sooner than in the float image.",
+                                      f"{rms8:.2f} of 255 levels. Faint fog far from the lights adds less than half "
+                                      "an 8-bit step per sample plane and so vanishes from the frame buffer, as on the "
+                                      "paper's hardware: the shafts fade sooner than in the float image.",
                            "params": {**params, "quantize_bits": 8}, "timings": {"compile_s": c_8, "frame_s": t_8}})
     return entries

@@ -72,7 +72,8 @@ def _scale_to_slope(h: np.ndarray, max_slope: float, texel: float) -> np.ndarray
 
 
 @functools.lru_cache(maxsize=8)
-def _fields(dune_size: int, ripple_size: int, seed: int, dune_steps: int, ripple_steps: int) -> tuple[np.ndarray, np.ndarray]:
+def _fields(dune_size: int, ripple_size: int, seed: int, dune_steps: int,
+            ripple_steps: int) -> tuple[np.ndarray, np.ndarray]:
     """Grow the dune and ripple fields with the automata of `sims` (cached per process)."""
     k_dune, k_ripple = jax.random.split(jax.random.key(seed))
     dunes = simulate_dunes(init_dunes(k_dune, (dune_size, dune_size)), DuneParams(), steps=dune_steps)
@@ -103,7 +104,8 @@ def desert_scene(*, dune_size: int = 64, ripple_size: int = 64, texels: int = 64
     return DesertScene(maps, ripple_j, dune_j)
 
 
-_build_maps = jax.jit(build_terrain_maps, static_argnames=("spacing", "texels", "levels", "directions", "grain_contrast"))
+_build_maps = jax.jit(build_terrain_maps,
+                      static_argnames=("spacing", "texels", "levels", "directions", "grain_contrast"))
 
 
 def default_camera(scene: DesertScene, *, width: int = 720, height: int = 480) -> Camera:
@@ -136,7 +138,8 @@ def _sky_jit(direction: Array, sun_intensity: float, env_size: tuple[int, int]) 
     theta = (jnp.arange(h, dtype=direction.dtype) + 0.5) / h * jnp.pi  # from the zenith
     phi = (jnp.arange(w, dtype=direction.dtype) + 0.5) / w * 2 * jnp.pi
     st, ct = jnp.sin(theta)[:, None], jnp.cos(theta)[:, None]
-    dirs = jnp.stack([st * jnp.cos(phi)[None, :], st * jnp.sin(phi)[None, :], ct * jnp.ones((1, w), direction.dtype)], axis=-1)
+    dirs = jnp.stack([st * jnp.cos(phi)[None, :], st * jnp.sin(phi)[None, :], ct * jnp.ones((1, w), direction.dtype)],
+                     axis=-1)
     # below the horizon the sky map holds the horizon's radiance (the ground is drawn by the dunes)
     dirs_up = dirs.at[..., 2].set(jnp.maximum(dirs[..., 2], 0.02))
     env = sky_radiance(_to_sky(dirs_up / jnp.linalg.norm(dirs_up, axis=-1, keepdims=True)), _to_sky(direction),
@@ -191,8 +194,9 @@ def desert_frame(scene: DesertScene, camera: Camera, *, sun_elevation: float = 1
     steps = shadow_steps(scene.maps, sun_elevation)
     particles = _dust(scene, dust_count, dust_steps, seed) if dust else None
     t1 = time.perf_counter()
-    image = _frame(scene.maps, camera, sun, env, sky_irr, visible, level, particles, jnp.asarray(haze, scene.maps.z.dtype),
-                   capacities=caps, ripples=ripples, dune_shadows=dune_shadows, ripple_shadows=ripple_shadows,
+    image = _frame(scene.maps, camera, sun, env, sky_irr, visible, level, particles,
+                   jnp.asarray(haze, scene.maps.z.dtype), capacities=caps, ripples=ripples,
+                   dune_shadows=dune_shadows, ripple_shadows=ripple_shadows,
                    steps=steps, dust=dust, ray_steps=ray_steps)
     image.block_until_ready()
     if timing is not None:
@@ -216,7 +220,8 @@ def _sky(sun_elevation: float, sun_azimuth: float):
 
 
 @functools.partial(jax.jit, static_argnames=("count", "steps", "tiling"))
-def _dust_jit(key: Array, dune_height: Array, ripple_height: Array, *, count: int, steps: int, tiling: float) -> DustParticles:
+def _dust_jit(key: Array, dune_height: Array, ripple_height: Array, *, count: int, steps: int,
+              tiling: float) -> DustParticles:
     params = DustParams(drift=0.35, lift=0.05, jitter=(0.1, 0.1, 0.03), size_scale=0.5)
     positions, sizes = simulate_dust(key, dune_height, ripple_height, n_particles=count, steps=steps, params=params,
                                      ripple_tiling=tiling)

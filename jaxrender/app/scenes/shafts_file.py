@@ -105,7 +105,8 @@ def _light_map(reader: _Reader, value: Any, field: str, base_dir: Path) -> np.nd
     return np.ascontiguousarray(image[..., :3], dtype=np.float64)
 
 
-def shafts_scene_from_dict(d: Any, *, base_dir: str | os.PathLike = ".", source: str | os.PathLike = "<scene>") -> ShaftsScene:
+def shafts_scene_from_dict(d: Any, *, base_dir: str | os.PathLike = ".",
+                           source: str | os.PathLike = "<scene>") -> ShaftsScene:
     """Validate a parsed scene (design.md contract) and build a `ShaftsScene`.
 
     `base_dir`: where relative light-map paths are resolved; `source`: the file named in errors.

@@ -32,7 +32,8 @@ def procedural_btf(kind: str, size: int = 32, *, key: PRNGKeyArray | None = None
         # a warmer, gold-dominated brocade: make the silk ground a deep red
         gold = t.lobe0.rho_s[..., 0] > 1.0
         red = jnp.asarray([0.35, 0.03, 0.03], dtype=dtype)
-        rho_d = jnp.where(gold[..., None], t.rho_d, red * (t.rho_d[..., :1] / jnp.maximum(jnp.mean(t.rho_d[..., :1]), 1e-6)))
+        rho_d = jnp.where(gold[..., None], t.rho_d,
+                          red * (t.rho_d[..., :1] / jnp.maximum(jnp.mean(t.rho_d[..., :1]), 1e-6)))
         return BTFTexel.single(rho_d.astype(dtype), t.lobe0.rho_s.astype(dtype), t.lobe0.normal.astype(dtype),
                                t.lobe0.sigma_x.astype(dtype), t.lobe0.sigma_y.astype(dtype))
     y, x = np.meshgrid((np.arange(size) + 0.5) / size, (np.arange(size) + 0.5) / size, indexing="ij")
@@ -57,7 +58,8 @@ def procedural_btf(kind: str, size: int = 32, *, key: PRNGKeyArray | None = None
     elif kind == "satin":
         floats = 8
         a = (x * floats) % 1.0 * 2 - 1
-        normal = np.stack([0.5 * a, 0.05 * np.sin(2 * np.pi * (y * 4 + np.floor(x * floats) * 0.37)), np.ones_like(a)], -1)
+        normal = np.stack([0.5 * a, 0.05 * np.sin(2 * np.pi * (y * 4 + np.floor(x * floats) * 0.37)), np.ones_like(a)],
+                          -1)
         rho_d = np.broadcast_to(np.asarray([0.18, 0.35, 0.5]), x.shape + (3,)) * (1 - 0.3 * a[..., None] ** 4)
         rho_s = np.broadcast_to(np.asarray([0.7, 0.75, 0.8]), x.shape + (3,))
         sigma_x, sigma_y = np.full(x.shape, 0.25), np.full(x.shape, 0.06)
@@ -67,7 +69,8 @@ def procedural_btf(kind: str, size: int = 32, *, key: PRNGKeyArray | None = None
         warp_up = (i + j) % 2 == 0
         a = ((x * size) % p + 0.5 - 0.5) / p * 2 - 1
         b = ((y * size) % p + 0.5 - 0.5) / p * 2 - 1
-        normal = np.stack([np.where(warp_up, 0.5 * a, 0.2 * a), np.where(warp_up, -0.2 * b, -0.5 * b), np.ones_like(a)], -1)
+        normal = np.stack([np.where(warp_up, 0.5 * a, 0.2 * a), np.where(warp_up, -0.2 * b, -0.5 * b), np.ones_like(a)],
+                          -1)
         rho_d = np.broadcast_to(np.asarray([0.7, 0.7, 0.7]), x.shape + (3,)).copy()
         rho_s = np.broadcast_to(np.asarray([0.3, 0.3, 0.3]), x.shape + (3,))
         sigma_x = np.where(warp_up, 0.3, 0.12)

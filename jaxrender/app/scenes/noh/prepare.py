@@ -105,7 +105,8 @@ def fire_shadow_maps(scene: NohScene, resolution: int) -> list[ShadowMap]:
     phs = [spot_pinhole(pos, rot, tan_c, resolution) for pos, rot in frames]
     window = max(raster_window(ph, verts, scene.triangles) for ph in phs)
     render = eqx.filter_jit(lambda ph, v: depth_map(ph, v, scene.triangles, window=window))
-    return [ShadowMap(depth=render(ph, verts), position=pos, rotation=rot, tan_cutoff=jnp.asarray(tan_c, dtype=pos.dtype))
+    return [ShadowMap(depth=render(ph, verts), position=pos, rotation=rot,
+                      tan_cutoff=jnp.asarray(tan_c, dtype=pos.dtype))
             for ph, (pos, rot) in zip(phs, frames)]
 
 
@@ -150,8 +151,9 @@ def garment_points(ph: Pinhole, scene: NohScene, gb: GBuffer, index: Array) -> G
     row = jnp.clip(jnp.floor(uv[:, 1] * hm).astype(jnp.int32), 0, hm - 1)
     material = scene.labels[row, col]
     use_colour = (material == LABELS.index("pattern")).astype(pos.dtype)
-    return GarmentPoints(index, pos, tangent_frames(n, dpdu), wo, uv * scene.tiles, _flat(gb.duv_dx)[index] * scene.tiles,
-                         _flat(gb.duv_dy)[index] * scene.tiles, material, scene.colours[row, col], use_colour)
+    return GarmentPoints(index, pos, tangent_frames(n, dpdu), wo, uv * scene.tiles,
+                         _flat(gb.duv_dx)[index] * scene.tiles, _flat(gb.duv_dy)[index] * scene.tiles,
+                         material, scene.colours[row, col], use_colour)
 
 
 def floor_points(ph: Pinhole, view: ViewSurfaces, index: Array) -> FloorPoints:
