@@ -9,6 +9,8 @@ import jax
 from fitting import Sensor, synth_capture
 from jaxrender.errors import InputError
 
+from .arguments import non_negative, positive_int
+
 
 def _lights(value: str):
     if value == "all":
@@ -22,23 +24,9 @@ def _lights(value: str):
     return n
 
 
-def _positive_int(value: str) -> int:
-    n = int(value)
-    if n < 1:
-        raise argparse.ArgumentTypeError("must be >= 1")
-    return n
-
-
-def _non_negative(value: str) -> float:
-    x = float(value)
-    if not x >= 0:
-        raise argparse.ArgumentTypeError("must be >= 0")
-    return x
-
-
 def configure(parser):
     parser.add_argument("out_dir", metavar="OUT_DIR", help="new capture directory (capture.json, images/, truth/)")
-    parser.add_argument("--size", nargs=2, type=_positive_int, default=[32, 32], metavar=("H", "W"),
+    parser.add_argument("--size", nargs=2, type=positive_int, default=[32, 32], metavar=("H", "W"),
                         help="texels (default 32 32)")
     parser.add_argument("--lights", type=_lights, default=300,
                         help="'all' (the paper's 2160 directions) or N, a stratified subset chosen by the seed "
@@ -48,10 +36,10 @@ def configure(parser):
     parser.add_argument("--format", choices=("png", "exr"), default="png", help="image format (default png)")
     parser.add_argument("--response", choices=("linear", "srgb"), default="linear",
                         help="PNG response curve (default linear; EXR is always linear)")
-    parser.add_argument("--noise", type=_non_negative, default=1.0,
+    parser.add_argument("--noise", type=non_negative, default=1.0,
                         help="scale of the shot and read noise (0 = noiseless; default 1)")
     parser.add_argument("--full-well", type=float, default=20000.0, help="electrons at full scale (default 20000)")
-    parser.add_argument("--read-noise", type=_non_negative, default=10.0, help="read noise in electrons (default 10)")
+    parser.add_argument("--read-noise", type=non_negative, default=10.0, help="read noise in electrons (default 10)")
     parser.add_argument("--white", type=float, default=0.95, help="white board reflectance (default 0.95)")
     parser.add_argument("--model", choices=("reciprocal", "paper"), default="reciprocal",
                         help="model form the images are rendered with (default reciprocal)")
