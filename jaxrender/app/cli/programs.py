@@ -34,7 +34,8 @@ def jaxrender_main(argv=None) -> int:
 
 
 def fitting_main(argv=None) -> int:
-    return run_cli("fitting", "`fitting` command line: BTF capture synthesis, fitting, pyramid, relighting and reports.",
+    return run_cli("fitting",
+                   "`fitting` command line: BTF capture synthesis, fitting, pyramid, relighting and reports.",
                    FITTING_COMMANDS, argv)
 
 
