@@ -37,7 +37,8 @@ def test_reflectance_matches_reference(model, jit):
     rng = np.random.default_rng(0)
     rho_d, rho_s = rng.random(3), rng.random(3)
     n = _unit(0.3, 1.1)
-    texel = brdf.BTFTexel.single(jnp.asarray(rho_d), jnp.asarray(rho_s), jnp.asarray(n), jnp.array(0.15), jnp.array(0.4))
+    texel = brdf.BTFTexel.single(jnp.asarray(rho_d), jnp.asarray(rho_s), jnp.asarray(n), jnp.array(0.15),
+                                 jnp.array(0.4))
     fn = jax.jit(brdf.reflectance, static_argnames="model") if jit else brdf.reflectance
     for _ in range(20):
         wi = _unit(rng.uniform(0, 1.4), rng.uniform(0, 2 * np.pi))
@@ -48,7 +49,8 @@ def test_reflectance_matches_reference(model, jit):
 
 def test_brdf_is_reciprocal_and_vmaps():
     rng = np.random.default_rng(1)
-    texel = brdf.BTFTexel.single(jnp.full(3, 0.2), jnp.full(3, 0.7), jnp.asarray(_unit(0.2, 0.5)), jnp.array(0.1), jnp.array(0.3))
+    texel = brdf.BTFTexel.single(jnp.full(3, 0.2), jnp.full(3, 0.7), jnp.asarray(_unit(0.2, 0.5)), jnp.array(0.1),
+                                 jnp.array(0.3))
     wis = jnp.asarray(np.stack([_unit(rng.uniform(0, 1.3), rng.uniform(0, 6.28)) for _ in range(16)]))
     wos = jnp.asarray(np.stack([_unit(rng.uniform(0, 1.3), rng.uniform(0, 6.28)) for _ in range(16)]))
     f = jax.vmap(lambda a, b: brdf.brdf(texel, a, b))

@@ -14,7 +14,9 @@ SIZE = (4, 5)
 EXPOSURES = [0.01, 0.1, 1.0]
 LIGHTS = [(0.0, 0.0), (30.0, 90.0), (60.0, 225.0)]
 BOARD = [0.9, 0.8, 0.7]
-MERGE_TOL = 2e-5  # float32 merge vs float64: sRGB pow(c, 2.4) costs ~eps * 2.4 * |ln c| per sample, hat weights near the thresholds a few ulps
+# float32 merge vs float64: sRGB pow(c, 2.4) costs ~eps * 2.4 * |ln c| per sample, hat weights near the
+# thresholds a few ulps
+MERGE_TOL = 2e-5
 
 
 def _codes(rng, shape, bits):
@@ -41,7 +43,8 @@ def make_capture(root, *, fmt="png", bits=8, response="linear", seed=0):
         return name
 
     white = [image(f"images/white_e{e}.{ext}") for e in range(len(EXPOSURES))]
-    lights = [{"theta_deg": t, "phi_deg": p, "images": [image(f"images/l{i}_e{e}.{ext}") for e in range(len(EXPOSURES))]}
+    lights = [{"theta_deg": t, "phi_deg": p,
+               "images": [image(f"images/l{i}_e{e}.{ext}") for e in range(len(EXPOSURES))]}
               for i, (t, p) in enumerate(LIGHTS)]
     manifest = {"format": "jaxrender-capture", "version": 1, "size": list(SIZE), "response": response,
                 "exposures_s": EXPOSURES, "view": {"theta_deg": 0, "phi_deg": 0},

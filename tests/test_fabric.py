@@ -27,9 +27,11 @@ def _texel(n=1, *, two=True, sigma=0.2, weight=0.3):
     rng = np.random.default_rng(0)
     normal0 = np.tile([0.1, -0.05, 1.0], (n, 1))
     normal1 = np.tile([-0.3, 0.2, 1.0], (n, 1))
-    l0 = Lobe(jnp.asarray(rng.uniform(0.2, 0.8, (n, 3))), jnp.asarray(normal0 / np.linalg.norm(normal0, axis=-1, keepdims=True)),
+    l0 = Lobe(jnp.asarray(rng.uniform(0.2, 0.8, (n, 3))),
+              jnp.asarray(normal0 / np.linalg.norm(normal0, axis=-1, keepdims=True)),
               jnp.full((n,), sigma), jnp.full((n,), 1.5 * sigma))
-    l1 = Lobe(jnp.asarray(rng.uniform(0.2, 0.8, (n, 3))), jnp.asarray(normal1 / np.linalg.norm(normal1, axis=-1, keepdims=True)),
+    l1 = Lobe(jnp.asarray(rng.uniform(0.2, 0.8, (n, 3))),
+              jnp.asarray(normal1 / np.linalg.norm(normal1, axis=-1, keepdims=True)),
               jnp.full((n,), 1.3 * sigma), jnp.full((n,), 0.8 * sigma))
     return BTFTexel(jnp.asarray(rng.uniform(0.05, 0.5, (n, 3))), l0, l1, jnp.full((n,), weight if two else 0.0))
 
@@ -199,5 +201,5 @@ def test_single_lobe_shading_equals_full_brdf_for_one_lobe_texels():
     wo = jnp.asarray(_dirs(3, seed=7))
     w = jnp.asarray(np.random.default_rng(4).uniform(0.5, 1.5, (3, 5, 3)))
     frame = _frame(3)
-    np.testing.assert_allclose(jax.jit(shade_single_lobe)(t, frame, wo, wi, w), jax.jit(shade_samples)(t, frame, wo, wi, w),
-                               rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(jax.jit(shade_single_lobe)(t, frame, wo, wi, w),
+                               jax.jit(shade_samples)(t, frame, wo, wi, w), rtol=1e-12, atol=1e-15)

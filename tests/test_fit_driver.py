@@ -41,7 +41,8 @@ def _env(tmp_root: Path, extra_xla: str = "") -> dict:
 
 
 def _fit_cmd(capture, out, *extra):
-    return [sys.executable, "-m", "jaxrender.app.cli.programs", "fitting", "fit", str(capture), "--out", str(out), "--chunk", CHUNK, *extra]
+    return [sys.executable, "-m", "jaxrender.app.cli.programs", "fitting", "fit", str(capture), "--out", str(out),
+            "--chunk", CHUNK, *extra]
 
 
 @pytest.fixture(scope="module")

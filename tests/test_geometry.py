@@ -89,7 +89,8 @@ def test_no_nan_gradients_on_miss_and_tangency():
         d = jnp.array([0.0, 0.0, 1.0])
         t_miss = intersect_sphere(o + jnp.array([5.0, 0.0, 0.0]), d, jnp.zeros(3), 1.0)
         t_tan = intersect_sphere(o + jnp.array([1.0, 0.0, 0.0]), d, jnp.zeros(3), 1.0)
-        t_par = intersect_quad(o, jnp.array([1.0, 0.0, 0.0]), jnp.zeros(3), jnp.array([1.0, 0, 0]), jnp.array([0, 1.0, 0]))
+        t_par = intersect_quad(o, jnp.array([1.0, 0.0, 0.0]), jnp.zeros(3), jnp.array([1.0, 0, 0]),
+                               jnp.array([0, 1.0, 0]))
         safe = lambda t: jnp.where(jnp.isfinite(t), t, 0.0)  # noqa: E731
         return safe(t_miss) + safe(t_tan) + safe(t_par)
 

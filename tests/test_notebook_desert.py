@@ -15,8 +15,10 @@ GRAD_REL_TOL = 1e-4  # float64, central step 1e-8 on a piecewise-linear function
 def test_desert_notebook_runs_and_computes():
     os.environ["MPLBACKEND"] = "Agg"
     nb = nbformat.read(NOTEBOOK, as_version=4)
-    nbclient.NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOK.parent)}}).execute()
-    text = "".join(out.get("text", "") for cell in nb.cells if cell.cell_type == "code" for out in cell.get("outputs", []))
+    nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
+                            resources={"metadata": {"path": str(NOTEBOOK.parent)}}).execute()
+    text = "".join(out.get("text", "") for cell in nb.cells if cell.cell_type == "code"
+                   for out in cell.get("outputs", []))
     line = next(l for l in text.splitlines() if l.startswith("RESULTS "))
     r = json.loads(line[len("RESULTS "):])
     assert 3.0 < r["ripple_wavelength"] < 64.0

@@ -15,7 +15,8 @@ NOTEBOOK = Path(__file__).resolve().parents[1] / "examples" / "shafts_inverse.ip
 def test_inverse_notebook_recovers_rho_K_and_intensity(tmp_path):
     os.environ["MPLBACKEND"] = "Agg"
     nb = nbformat.read(NOTEBOOK, as_version=4)
-    nbclient.NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
+    nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
+                            resources={"metadata": {"path": str(tmp_path)}}).execute()
     lines = [line for cell in nb.cells if cell.cell_type == "code" for out in cell.get("outputs", [])
              for line in out.get("text", "").splitlines() if line.startswith("RESULTS ")]
     assert len(lines) == 1

@@ -45,7 +45,8 @@ def two_direction_children(key, n=N_TEXELS):
     sy = pick(rng.uniform(0.04, 0.2, (n, 2))) * jitter((n, 4))
     rho_s = pick(rng.uniform(0.2, 1.0, (n, 2, 3))) * jitter((n, 4, 1))
     rho_d = rng.uniform(0.02, 0.3, (n, 4, 3))
-    return BTFTexel.single(jnp.asarray(rho_d), jnp.asarray(rho_s), jnp.asarray(normal), jnp.asarray(sx), jnp.asarray(sy))
+    return BTFTexel.single(jnp.asarray(rho_d), jnp.asarray(rho_s), jnp.asarray(normal), jnp.asarray(sx),
+                           jnp.asarray(sy))
 
 
 def light_view_pairs(key, n=N_PAIRS, *, max_theta_deg=60.0, cone_deg=40.0):
@@ -127,7 +128,8 @@ def test_gather_children_pads_odd_sizes_like_downsample2():
     padded = np.pad(sx, ((0, 1), (0, 1)), mode="edge")
     for i in range(3):
         for j in range(2):
-            block = [padded[2 * i, 2 * j], padded[2 * i + 1, 2 * j], padded[2 * i, 2 * j + 1], padded[2 * i + 1, 2 * j + 1]]
+            block = [padded[2 * i, 2 * j], padded[2 * i + 1, 2 * j],
+                     padded[2 * i, 2 * j + 1], padded[2 * i + 1, 2 * j + 1]]
             np.testing.assert_array_equal(children.lobe0.sigma_x[i, j], block)
 
 

@@ -41,12 +41,17 @@ def _edit(fn):
 
 _CASES = {
     "missing field": (_edit(lambda s: s["spotlights"][0].pop("cutoff_deg")), "spotlights[0].cutoff_deg: missing field"),
-    "wrong type": (_edit(lambda s: s["spotlights"][0].update(cutoff_deg="wide")), "spotlights[0].cutoff_deg: expected a number"),
+    "wrong type": (_edit(lambda s: s["spotlights"][0].update(cutoff_deg="wide")),
+                   "spotlights[0].cutoff_deg: expected a number"),
     "wrong vector": (_edit(lambda s: s["camera"].update(eye=[0, 1])), "camera.eye: expected a list of 3 numbers"),
-    "unknown object": (_edit(lambda s: s["objects"].append({"type": "cube"})), "objects[2].type: unknown object type 'cube'"),
-    "missing light map": (_edit(lambda s: s["spotlights"][0].update(light_map="nope.png")), "spotlights[0].light_map: cannot read"),
-    "corrupt light map": (_edit(lambda s: s["spotlights"][0].update(light_map="scene.json")), "spotlights[0].light_map: cannot read"),
-    "up parallel": (_edit(lambda s: s["camera"].update(up=[0, -1, -12])), "camera.up: parallel to the viewing direction"),
+    "unknown object": (_edit(lambda s: s["objects"].append({"type": "cube"})),
+                       "objects[2].type: unknown object type 'cube'"),
+    "missing light map": (_edit(lambda s: s["spotlights"][0].update(light_map="nope.png")),
+                          "spotlights[0].light_map: cannot read"),
+    "corrupt light map": (_edit(lambda s: s["spotlights"][0].update(light_map="scene.json")),
+                          "spotlights[0].light_map: cannot read"),
+    "up parallel": (_edit(lambda s: s["camera"].update(up=[0, -1, -12])),
+                    "camera.up: parallel to the viewing direction"),
     "missing block": (_edit(lambda s: s.pop("medium")), "medium: missing field"),
     "bad json": ("{not json", "not valid JSON"),
 }
@@ -78,13 +83,15 @@ def test_loader_defaults_relative_maps_and_warning(tmp_path):
     scene = load_shafts_scene(path)
     light = scene.lights[0]
     assert float(light.beam_width_deg) == pytest.approx(15.0)  # 0.75 * cutoff by default
-    np.testing.assert_allclose(np.asarray(light.light_map), read_image(tmp_path / "maps" / "dots.png")[..., :3], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(light.light_map), read_image(tmp_path / "maps" / "dots.png")[..., :3],
+                               atol=1e-6)
     assert float(scene.render.shadow_bias) == pytest.approx(0.002) and scene.render.table_size == 256
     hot = _edit(lambda s: s["medium"].update(K=0.01))  # 8 pi K = 0.25 > kappa = 0.1
     with pytest.warns(ShaftsSceneWarning, match="8\\*pi\\*K"):
         shafts_scene_from_dict(hot, base_dir=tmp_path, source="hot.json")
     with pytest.raises(InputError, match=re.escape("x.json: spotlights[0].up: parallel")):
-        shafts_scene_from_dict(_edit(lambda s: s["spotlights"][0].update(up=[0, 1, 0])), base_dir=tmp_path, source="x.json")
+        shafts_scene_from_dict(_edit(lambda s: s["spotlights"][0].update(up=[0, 1, 0])), base_dir=tmp_path,
+                               source="x.json")
 
 
 def test_cli_renders_png_and_times(tmp_path, capsys):

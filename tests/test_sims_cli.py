@@ -16,7 +16,8 @@ _F32_TOL = 1e-5  # float32 output file vs the float64 API run: rounding of ~10-u
 def test_ripples_cli_matches_api_and_continues(tmp_path, capsys):
     out = tmp_path / "r.npy"
     rc = main(["ripples", "--size", "12x16", "--steps", "130", "--L0", "3.1", "--q", "0.5", "--b", "1.5",
-               "--D", "0.7", "--wind-deg", "20", "--seed", "3", "--out", str(out), "--preview", str(tmp_path / "r.png")])
+               "--D", "0.7", "--wind-deg", "20", "--seed", "3", "--out", str(out),
+               "--preview", str(tmp_path / "r.png")])
     assert rc == 0
     params = RippleParams(L0=3.1, q=0.5, b=1.5, D=0.7, wind_deg=20.0)
     api = simulate_ripples(init_ripples(jax.random.key(3), (12, 16)), params, steps=130)
