@@ -18,7 +18,9 @@ JAXRENDER_COMMANDS = {
 }
 FITTING_COMMANDS = {
     "synth": ("jaxrender.app.cli.synth", "write a synthetic multi-light HDR capture with known parameter maps"),
-    "fit": ("jaxrender.app.cli.fit", "fit per-texel anisotropic BRDF parameters to a capture directory"),
+    "manifest": ("jaxrender.app.cli.manifest", "write a capture manifest (capture.json) from a CSV of images"),
+    "ingest": ("jaxrender.app.cli.ingest", "merge a capture into an on-disk observation store in one streaming pass"),
+    "fit": ("jaxrender.app.cli.fit", "fit per-texel anisotropic BRDF parameters to a capture directory or store"),
     "pyramid": ("jaxrender.app.cli.pyramid", "build the EM multi-resolution 2-lobe levels of a BTF"),
     "relight": ("jaxrender.app.cli.relight", "render a fitted BTF under one distant light"),
     "report": ("jaxrender.app.cli.report", "relighting error and residuals of a fit, as a figure and a table"),

@@ -1,0 +1,36 @@
+"""`fitting manifest IMAGES.csv --out CAPTURE_DIR/capture.json`: a capture manifest from a CSV of
+images (columns image, kind, theta_deg, phi_deg, exposure_s; EXIF ExposureTime when empty)."""
+
+from __future__ import annotations
+
+from fitting.manifest import write_manifest
+
+from .fit import _positive_float
+
+
+def _float(value: str) -> float:
+    import argparse
+
+    try:
+        return float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{value!r} is not a number") from None
+
+
+def configure(parser):
+    parser.add_argument("csv", metavar="IMAGES.csv", help="one row per image: image,kind,theta_deg,phi_deg,exposure_s")
+    parser.add_argument("--out", required=True, metavar="CAPTURE_DIR/capture.json", help="manifest to write")
+    parser.add_argument("--response", choices=("linear", "srgb"), default="linear",
+                        help="how integer codes are linearised (default linear; camera JPEGs: srgb)")
+    parser.add_argument("--white-reflectance", type=_positive_float, nargs="+", default=[1.0], metavar="R",
+                        help="the white board's reflectance: one number or R G B (default 1.0)")
+    parser.add_argument("--view", type=_float, nargs=2, default=(0.0, 0.0), metavar=("THETA", "PHI"),
+                        help="camera direction in degrees (default 0 0)")
+
+
+def run(args) -> int:
+    refl = args.white_reflectance
+    out = write_manifest(args.csv, args.out, response=args.response,
+                         white_reflectance=refl[0] if len(refl) == 1 else list(refl), view=tuple(args.view))
+    print(f"{out}: written")
+    return 0
