@@ -1,63 +1,105 @@
-"""Peers for the ripple benchmarks: the same rules (paper 001 eqs. 1-4, split/nearest hop along
-+x, periodic) in vectorized numpy and in numba. Not part of the package."""
+"""Peers for the ripple benchmarks: the same update as sims.ripple_step (paper 001 eqs. 1-4,
+split/nearest hop along +x, periodic; amounts, shares and creep fluxes on the sand grid so the
+total is conserved exactly) in vectorized numpy and in numba. Not part of the package."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 
+def _quantum(h: np.ndarray, q: float) -> float:
+    """The sand grid of sims._transport.sand_quantum: the last bit of 2x max(|h|, q)."""
+    _, exponent = np.frexp(max(float(np.max(np.abs(h))), abs(q)))
+    return float(np.ldexp(1.0, int(exponent) + 1 - (np.finfo(h.dtype).nmant + 1)))
+
+
 def numpy_step(h: np.ndarray, *, L0: float = 7.3, q: float = 0.6, b: float = 2.0, D: float = 0.8,
                hop: str = "split") -> np.ndarray:
-    """One synchronous step: saltation along +x (np.bincount deposit), then creep (np.roll)."""
+    """One synchronous step, the update of sims.ripple_step: heights, amount, split shares and
+    creep fluxes on the sand grid (exact conservation); saltation along +x (np.bincount
+    deposit), then creep as fluxes between neighbours (np.roll)."""
     height, width = h.shape
+    grid = _quantum(h, q)
+    h = np.round(h / grid) * grid
+    q = np.round(q / grid) * grid
     L = L0 + b * h
     rows = np.arange(height)[:, None] * width
     cols = np.arange(width)[None, :]
     if hop == "split":
         base = np.floor(L)
-        frac = L - base
+        far = np.round(q * (L - base) / grid) * grid
         target = rows + (cols + base.astype(np.int64)) % width
         target1 = rows + (cols + base.astype(np.int64) + 1) % width
-        dep = (np.bincount(target.ravel(), (q * (1.0 - frac)).ravel(), minlength=h.size)
-               + np.bincount(target1.ravel(), (q * frac).ravel(), minlength=h.size))
+        dep = (np.bincount(target.ravel(), (q - far).ravel(), minlength=h.size)
+               + np.bincount(target1.ravel(), far.ravel(), minlength=h.size))
     else:
         target = rows + (cols + np.round(L).astype(np.int64)) % width
         dep = np.bincount(target.ravel(), np.full(h.size, q), minlength=h.size)
     h = h - q + dep.reshape(h.shape)
-    nn = np.roll(h, 1, 0) + np.roll(h, -1, 0) + np.roll(h, 1, 1) + np.roll(h, -1, 1)
-    nnn = (np.roll(np.roll(h, 1, 0), 1, 1) + np.roll(np.roll(h, 1, 0), -1, 1)
-           + np.roll(np.roll(h, -1, 0), 1, 1) + np.roll(np.roll(h, -1, 0), -1, 1))
-    return h + D * (nn / 6.0 + nnn / 12.0 - h)
+    # fluxes into each cell from its east, south, south-east and south-west neighbour
+    south = np.roll(h, -1, 0)
+    fluxes = ((D / 6.0, np.roll(h, -1, 1), (0, 1)), (D / 6.0, south, (1, 0)),
+              (D / 12.0, np.roll(south, -1, 1), (1, 1)), (D / 12.0, np.roll(south, 1, 1), (1, -1)))
+    out = h.copy()
+    for weight, neighbour, (dy, dx) in fluxes:
+        flux = np.round(weight * (neighbour - h) / grid) * grid
+        out += flux - np.roll(flux, (dy, dx), (0, 1))
+    return out
 
 
-def make_numba_steps():
-    """A numba kernel running `steps` steps (split hop along +x); compiled on first call."""
+def make_numba_steps(parallel: bool = False):
+    """A numba kernel running `steps` steps of the same update (split hop along +x, sand grid,
+    creep as fluxes); compiled on first call. With `parallel`, the rows are spread over numba's
+    threads (`prange`): the wind is along the rows, so a row's hops stay in the row."""
     import numba
 
-    @numba.njit(cache=False, fastmath=False)
-    def run(h, steps, L0, q, b, D):
+    rows = numba.prange if parallel else range
+
+    @numba.njit(cache=False, fastmath=False, parallel=parallel)
+    def run(h, steps, L0, q_in, b, D):
         height, width = h.shape
         cur = h.copy()
         tmp = np.empty_like(h)
+        flux = np.empty((4, height, width))
+        row_max = np.empty(height)
+        side, corner = D / 6.0, D / 12.0
         for _ in range(steps):
-            for i in range(height):
+            for i in rows(height):
+                top = 0.0
                 for j in range(width):
+                    top = max(top, abs(cur[i, j]))
+                row_max[i] = top
+            _, exponent = math.frexp(max(row_max.max(), abs(q_in)))
+            grid = math.ldexp(1.0, exponent + 1 - 53)
+            q = np.rint(q_in / grid) * grid
+            for i in rows(height):
+                for j in range(width):
+                    cur[i, j] = np.rint(cur[i, j] / grid) * grid
                     tmp[i, j] = cur[i, j] - q
-            for i in range(height):
                 for j in range(width):
                     L = L0 + b * cur[i, j]
                     base = np.floor(L)
-                    f = L - base
+                    far = np.rint(q * (L - base) / grid) * grid
                     t = (j + int(base)) % width
-                    tmp[i, t] += q * (1.0 - f)
-                    tmp[i, (t + 1) % width] += q * f
-            for i in range(height):
-                im, ip = (i - 1) % height, (i + 1) % height
+                    tmp[i, t] += q - far
+                    tmp[i, (t + 1) % width] += far
+            for i in rows(height):
+                ip = (i + 1) % height
                 for j in range(width):
                     jm, jp = (j - 1) % width, (j + 1) % width
-                    nn = tmp[im, j] + tmp[ip, j] + tmp[i, jm] + tmp[i, jp]
-                    nnn = tmp[im, jm] + tmp[im, jp] + tmp[ip, jm] + tmp[ip, jp]
-                    cur[i, j] = tmp[i, j] + D * (nn / 6.0 + nnn / 12.0 - tmp[i, j])
+                    c = tmp[i, j]
+                    flux[0, i, j] = np.rint(side * (tmp[i, jp] - c) / grid) * grid
+                    flux[1, i, j] = np.rint(side * (tmp[ip, j] - c) / grid) * grid
+                    flux[2, i, j] = np.rint(corner * (tmp[ip, jp] - c) / grid) * grid
+                    flux[3, i, j] = np.rint(corner * (tmp[ip, jm] - c) / grid) * grid
+            for i in rows(height):
+                im = (i - 1) % height
+                for j in range(width):
+                    jm, jp = (j - 1) % width, (j + 1) % width
+                    cur[i, j] = tmp[i, j] + ((flux[0, i, j] - flux[0, i, jm]) + (flux[1, i, j] - flux[1, im, j])
+                                             + (flux[2, i, j] - flux[2, im, jm]) + (flux[3, i, j] - flux[3, im, jp]))
         return cur
 
     return run

@@ -25,7 +25,16 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
-from ._transport import HOP_MODES, creep, directional_slope, hop_components, random_field, saltate, wind_vector
+from ._transport import (
+    HOP_MODES,
+    creep,
+    directional_slope,
+    hop_components,
+    random_field,
+    saltate,
+    sand_quantum,
+    wind_vector,
+)
 
 
 class DuneParams(eqx.Module):
@@ -63,8 +72,9 @@ def dune_step(field: Float[Array, "... H W"], params: DuneParams = DuneParams())
     cx, cy = wind_vector(params.wind_deg)
     amount, hop = dune_transport(field, params)
     hop_x, hop_y = hop_components(hop, cx, cy)
-    field = saltate(field, amount, hop_x, hop_y, mode=params.hop)
-    return creep(field, jnp.asarray(params.D, field.dtype))
+    quantum = sand_quantum(field, amount)  # one sand grid for the whole step: the total is exact
+    field = saltate(field, amount, hop_x, hop_y, mode=params.hop, quantum=quantum)
+    return creep(field, jnp.asarray(params.D, field.dtype), quantum=quantum)
 
 
 @functools.partial(jax.jit, static_argnames=("steps",))

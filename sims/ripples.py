@@ -33,7 +33,7 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
-from ._transport import HOP_MODES, creep, hop_components, random_field, saltate, wind_vector
+from ._transport import HOP_MODES, creep, hop_components, random_field, saltate, sand_quantum, wind_vector
 
 
 class RippleParams(eqx.Module):
@@ -61,8 +61,9 @@ def ripple_step(field: Float[Array, "... H W"], params: RippleParams = RipplePar
     hop = jnp.asarray(params.L0, dtype) + jnp.asarray(params.b, dtype) * field
     amount = jnp.broadcast_to(jnp.asarray(params.q, dtype), field.shape)
     hop_x, hop_y = hop_components(hop, cx, cy)
-    field = saltate(field, amount, hop_x, hop_y, mode=params.hop)
-    return creep(field, jnp.asarray(params.D, dtype))
+    quantum = sand_quantum(field, amount)  # one sand grid for the whole step: the total is exact
+    field = saltate(field, amount, hop_x, hop_y, mode=params.hop, quantum=quantum)
+    return creep(field, jnp.asarray(params.D, dtype), quantum=quantum)
 
 
 @functools.partial(jax.jit, static_argnames=("steps",))

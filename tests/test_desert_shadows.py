@@ -5,9 +5,18 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
-from jaxrender.shadows import (heightfield_light, heightfield_shadow, horizon_band, horizon_directions, horizon_light,
-                               horizon_map, horizon_shadow, triangle_height)
+from jaxrender.shadows import (
+    heightfield_light,
+    heightfield_shadow,
+    horizon_band,
+    horizon_directions,
+    horizon_light,
+    horizon_map,
+    horizon_shadow,
+    triangle_height,
+)
 
 EXACT_TOL = 1e-12  # the fast search is exact: only float64 rounding of identical formulas differs
 AGREE_MIN = 0.99  # issue 3: the horizon shadow / incremental march agrees with a brute-force ray on >= 99 %
@@ -108,22 +117,34 @@ def _horizon_bruteforce_np(h, directions):
     return out
 
 
-def test_horizon_shadow_agrees_with_bruteforce_ray():
+AGREE_MIN_8 = 0.94  # issue 15: with the renderer's 8 directions; measured 95.7-100 % over these lights
+_LIGHTS = [(0.0, 8.0), (160.0, 8.0), (160.0, 12.0), (200.0, 12.0)]  # (azimuth, elevation) in degrees
+
+
+@pytest.mark.parametrize("directions,agree_min,lights", [(8, AGREE_MIN_8, _LIGHTS + [(20.0, 10.0), (45.0, 8.0)]),
+                                                         (16, AGREE_MIN, _LIGHTS)])
+def test_horizon_shadow_agrees_with_bruteforce_ray(directions, agree_min, lights):
+    """The horizon shadow against a brute-force ray through the continuous (bilinear) field.
+
+    At the renderer's 8 directions (`jaxrender.terrain` builds its ripple horizon maps with 8)
+    the agreement is 95.7-100 % over these lights (measured): the linear interpolation between
+    directions 45 deg apart misjudges lights between them (20 deg: 95.7 %, 160 deg: 96.7 %), and
+    along a diagonal the lattice path (sampled at lattice points only) differs slightly from the
+    continuous ray; the test asserts >= 94 %. With 16 directions it is >= 99 % (issue 3) for the
+    first four lights (98.96 % at 20 deg, between two of the 16).
+    """
     n = 48
     y, x = np.mgrid[0:n, 0:n] / n * 2 * np.pi
     h = np.sin(4 * x + 0.6 * np.sin(y)) + 0.3 * np.sin(8 * x + 2 * y + 1.0)  # smooth ripples
     h *= 0.35 / np.max(np.abs(np.roll(h, -1, 1) - np.roll(h, 1, 1)) / 2)  # steepest slope 0.35
-    # 16 directions: with 8, the linear interpolation between directions 45 deg apart agrees on
-    # 94-97 % only for lights between them, and along a diagonal the lattice path (sampled at
-    # lattice points only) agrees on ~98 % with the continuous bilinear ray (RESULTS.md)
-    hmap = jnp.asarray(_horizon_bruteforce_np(h, 16))  # == horizon_map (tests above); compiles nothing
-    for az_deg, el_deg in [(0.0, 8.0), (160.0, 8.0), (160.0, 12.0), (200.0, 12.0)]:
+    hmap = jnp.asarray(_horizon_bruteforce_np(h, directions))  # == horizon_map (tests above); compiles nothing
+    for az_deg, el_deg in lights:
         az, el = math.radians(az_deg), math.radians(el_deg)
         light = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
         fast = np.asarray(horizon_shadow(hmap, jnp.broadcast_to(jnp.asarray(light), (n, n, 3))))
         ref = _ray_shadow_bruteforce(h, az, el)
         assert ref.any() and (~ref).any(), "the test light must give both lit and shadowed texels"
-        assert np.mean(fast == ref) >= AGREE_MIN, (az_deg, np.mean(fast == ref))
+        assert np.mean(fast == ref) >= agree_min, (az_deg, np.mean(fast == ref))
 
 
 def _ray_lit_fraction_bruteforce(h, az, el, sub=4, step=0.05):
