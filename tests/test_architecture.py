@@ -9,6 +9,8 @@ module) as imports too."""
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -127,3 +129,11 @@ def test_no_import_cycles():
     for m in sorted(MODULES):
         if m not in state:
             visit(m, [m])
+
+
+@pytest.mark.parametrize("program", ["jaxrender", "fitting", "sims"])
+def test_help_answers_without_importing_jax(program):
+    code = (f"import sys; from jaxrender.app.cli.programs import PROGRAMS; PROGRAMS[{program!r}](['--help']); "
+            "print('jax' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "False" and "commands:" in out
