@@ -181,8 +181,6 @@ def _exr_header(path: Path):
     if "channels" not in header or "dataWindow" not in header:
         # OpenEXR's header_only read comes back empty in some processes (seen under pytest's
         # warning filters): read the channels instead
-        from jaxrender.io import read_exr
-
         channels = read_exr(path)
         names = set(channels)
         shape = next(iter(channels.values())).shape if channels else (0, 0)

@@ -29,6 +29,8 @@ import numpy as np
 
 from jaxrender.io import InputError, atomic_path
 
+from .hdr import Observations
+
 __all__ = ["STORE_FORMAT", "STORE_VERSION", "STORE_DTYPES", "DEFAULT_STORE_DTYPE", "ObservationStore",
            "open_store", "is_store", "VALID", "SATURATED", "DARK"]
 
@@ -102,8 +104,6 @@ class ObservationStore:
     def observations(self):
         """The whole store as in-memory `fitting.hdr.Observations` (small stores and tests only)."""
         import jax.numpy as jnp
-
-        from .hdr import Observations
 
         ratio, weight = self.read(0, self.n_texels)
         h, w = self.size
