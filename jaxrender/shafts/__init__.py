@@ -1,11 +1,17 @@
-"""Light shafts in fog (paper 000): the scattering model of eqs. 1-4, the sample-plane method
-with sub-sample planes and 8-bit hardware emulation (eqs. 5-9), and a ray-marched reference.
+"""Light shafts in fog (paper 000): the scattering model of eqs. 1-4, a fast equiangular
+single-scattering method (the default), the sample-plane method with sub-sample planes and 8-bit
+hardware emulation (eqs. 5-9), and a ray-marched reference; `render` runs any of them with
+`samples_per_pixel` (k x k regular sub-pixel grid, box filter).
 
     scene = jaxrender.scenes.load_shafts_scene("scene.json")
+    image = jaxrender.shafts.render(scene, samples_per_pixel=4)                 # equiangular, 2 x 2 AA
     image = jaxrender.shafts.render_planes(scene, planes=30, subplanes=6)     # (H, W, 3)
     ref = jaxrender.shafts.render_raymarch(scene, samples=180)
 """
 
+from ._equiangular import bake_light_map as bake_light_map
+from ._equiangular import equiangular_scattering as equiangular_scattering
+from ._equiangular import render_equiangular as render_equiangular
 from ._model import attenuation_h as attenuation_h
 from ._model import cone_depth_range as cone_depth_range
 from ._model import cone_interval as cone_interval
@@ -16,6 +22,10 @@ from ._planes import render_planes as render_planes
 from ._planes import shadow_maps as shadow_maps
 from ._raymarch import raymarch_scattering as raymarch_scattering
 from ._raymarch import render_raymarch as render_raymarch
+from ._render import DEFAULT_METHOD as DEFAULT_METHOD
+from ._render import METHODS as METHODS
+from ._render import render as render
+from ._render import supersample as supersample
 from ._scene import Medium as Medium
 from ._scene import RenderSettings as RenderSettings
 from ._scene import ShaftsScene as ShaftsScene
