@@ -133,7 +133,8 @@ def measure(name: str, cmd: list[str], env: dict) -> dict:
               "stdout": stdout.strip()[-300:]}
     procs = ", ".join(f"{p['peak_rss_gb']:.2f}" for p in result["processes"])
     print(f"{name:<34} wall {result['wall_s']:8.1f} s  cpu {result['cpu_s']:8.1f} s  "
-          f"peak RSS {result['peak_rss_gb']:.2f} GB (every process: {procs} GB)  load {result['load_before'][0]:.1f} -> {result['load_after'][0]:.1f}",
+          f"peak RSS {result['peak_rss_gb']:.2f} GB (every process: {procs} GB)  "
+          f"load {result['load_before'][0]:.1f} -> {result['load_after'][0]:.1f}",
           flush=True)
     return result
 

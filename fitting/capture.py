@@ -296,7 +296,8 @@ def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, h
     size = manifest.get("size")
     if not (isinstance(size, list) and len(size) == 2 and all(isinstance(s, int) and not isinstance(s, bool)
                                                                and s > 0 for s in size)):
-        bad("size", "missing or not [H, W] with positive integers" if size is None else f"{size!r} is not [H, W] with positive integers")
+        bad("size", "missing or not [H, W] with positive integers" if size is None
+            else f"{size!r} is not [H, W] with positive integers")
         size = None
     else:
         size = (int(size[0]), int(size[1]))

@@ -2,10 +2,10 @@
 
 The machinery of both paths: observations in memory (`fit_maps`, `fit_observations`) and the
 observation store fitted tile by tile (`fitting.tiles`: `fit_store`, `fit_capture`). Every texel
-is fitted with `fitting.lm.fit_texels` in chunks of `chunk` texels (each chunk split over all local JAX devices, each device fitting its share in
-tiles whose size does not depend on the device count: the maps are bit-identical on 1 or N devices),
-and writes the BTF directory: level 0 through `jaxrender.io.write_btf` (`btf.json` last), PNG
-previews, then the EM pyramid (`fitting.pyramid.build_pyramid`, which rewrites `btf.json` last).
+is fitted with `fitting.lm.fit_texels` in chunks of `chunk` texels (each chunk split over all
+local JAX devices, each device fitting its share in tiles whose size does not depend on the device
+count: the maps are bit-identical on 1 or N devices), and `write_fit` writes the BTF directory:
+level 0 through `jaxrender.io.write_btf` (`btf.json` last), PNG previews, then the EM pyramid (`fitting.pyramid.build_pyramid`, which rewrites `btf.json` last).
 
 Finished chunks are checkpointed in `BTF_DIR/.partial/` (one `.npz` per chunk, each written
 atomically, plus `config.json` naming the capture and settings). Rerunning on the same output
@@ -37,7 +37,8 @@ __all__ = ["fit_observations", "fit_maps", "fit_chunks", "fit_chunk", "chunk_pla
            "DEFAULT_CHUNK", "TILE", "PARTIAL"]
 
 DEFAULT_CHUNK = 4096
-TILE = 32  # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
+# texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
+TILE = 32
 PARTIAL = ".partial"
 _FIELDS = ("rho_d", "rho_s", "normal", "sigma_x", "sigma_y", "residual", "cost", "converged", "num_steps", "n_valid")
 
@@ -84,7 +85,8 @@ def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_
         place = jax.sharding.SingleDeviceSharding(dev)
         r = jax.device_put(ratio[share].reshape((-1, tile) + ratio.shape[1:]), place)
         w = jax.device_put(weight[share].reshape((-1, tile) + weight.shape[1:]), place)
-        outs.append(fn(r, w, jax.device_put(np.asarray(light_dirs), place), jax.device_put(np.asarray(view_dir), place)))
+        dirs, view = jax.device_put(np.asarray(light_dirs), place), jax.device_put(np.asarray(view_dir), place)
+        outs.append(fn(r, w, dirs, view))
     return {name: np.concatenate([np.asarray(getattr(o, name)) for o in outs]) for name in _FIELDS}
 
 
@@ -263,7 +265,8 @@ def level0_channels(maps: dict[str, np.ndarray], obs) -> dict[str, np.ndarray]:
 
 
 def write_fit(btf_dir: Path, maps: dict[str, np.ndarray], counts, *, solver: str, chunk: int, max_steps: int,
-              model: str, pyramid: bool, seconds: float, meta: dict | None = None) -> Path:
+              model: str, pyramid: bool, seconds: float, cpu_seconds: float | None = None,
+              meta: dict | None = None) -> Path:
     """Level 0 (`btf.json` last), its previews and the EM pyramid of fitted maps; removes `.partial/`.
     `counts`: `Observations` or a dict of `n_valid`, `n_saturated`, `n_dark` maps."""
     level0 = level0_channels(maps, counts)
@@ -274,6 +277,8 @@ def write_fit(btf_dir: Path, maps: dict[str, np.ndarray], counts, *, solver: str
                     "converged_fraction": float(np.mean(maps["converged"])),
                     "median_residual": float(np.median(maps["residual"])),
                     "median_steps": float(np.median(maps["num_steps"])), "seconds": round(seconds, 3)}}
+    if cpu_seconds is not None:  # this process's CPU time (robust to a shared machine's load)
+        info["fit"]["cpu_seconds"] = round(cpu_seconds, 3)
     info.update(meta or {})
     write_btf(btf_dir, [level0], model=model, meta=info)
     write_btf_previews(btf_dir, level0)
@@ -291,8 +296,9 @@ def fit_observations(obs, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_S
     btf_dir = Path(btf_dir)
     if np.asarray(obs.ratio).dtype != np.float32:
         raise ValueError("fit_observations fits float32 observations")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     maps = fit_maps(obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model, partial_dir=btf_dir / PARTIAL,
                     progress=progress)
     return write_fit(btf_dir, maps, obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
-                     pyramid=pyramid, seconds=time.perf_counter() - t0, meta=dict(meta or {}))
+                     pyramid=pyramid, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0,
+                     meta=dict(meta or {}))

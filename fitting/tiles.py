@@ -143,15 +143,16 @@ def fit_store(store_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, solve
     check_settings(solver, chunk, max_steps)
     store = open_store(store_dir)
     btf_dir = Path(btf_dir)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     maps = fit_store_maps(store, partial_dir=btf_dir / PARTIAL, solver=solver, chunk=chunk, max_steps=max_steps,
                           model=model, scheduler=scheduler, progress=progress)
-    seconds = time.perf_counter() - t0
+    seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
     info = {"capture": store.info.get("capture"), "store": {"dtype": store.dtype, "fingerprint": store.fingerprint},
             "scheduler": describe_scheduler(scheduler)}
     info.update(meta or {})
     return write_fit(btf_dir, maps, store.counts(), solver=solver, chunk=chunk, max_steps=max_steps, model=model,
-                     pyramid=pyramid, seconds=seconds, meta=info)
+                     pyramid=pyramid, seconds=seconds, cpu_seconds=None if scheduler is not None else cpu_seconds,
+                     meta=info)
 
 
 def fit_capture(source: str | os.PathLike, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_SOLVER,
