@@ -5,7 +5,8 @@ observation store fitted tile by tile (`fitting.tiles`: `fit_store`, `fit_captur
 is fitted with `fitting.lm.fit_texels` in chunks of `chunk` texels (each chunk split over all
 local JAX devices, each device fitting its share in tiles whose size does not depend on the device
 count: the maps are bit-identical on 1 or N devices), and `write_fit` writes the BTF directory:
-level 0 through `jaxrender.io.write_btf` (`btf.json` last), PNG previews, then the EM pyramid (`fitting.pyramid.build_pyramid`, which rewrites `btf.json` last).
+level 0 through `jaxrender.io.write_btf` (`btf.json` last), PNG previews, then the EM pyramid
+(`fitting.pyramid.build_pyramid`, which rewrites `btf.json` last).
 
 Finished chunks are checkpointed in `BTF_DIR/.partial/` (one `.npz` per chunk, each written
 atomically, plus `config.json` naming the capture and settings). Rerunning on the same output
