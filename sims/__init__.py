@@ -1,25 +1,29 @@
-"""Simulations that feed the renderer: ripple and dune automata, sand dust, fire, cloth."""
+"""Simulations that feed the renderer: ripple and dune automata, sand dust, fire, cloth (draped
+and moving), footprints in sand."""
 
-from ._transport import creep as creep
-from ._transport import deposit as deposit
-from ._transport import saltate as saltate
-from .dunes import DuneParams as DuneParams
-from .dunes import dune_step as dune_step
-from .dunes import dune_transport as dune_transport
-from .dunes import init_dunes as init_dunes
-from .dunes import simulate_dunes as simulate_dunes
-from .ripples import RippleParams as RippleParams
-from .ripples import dominant_wavelength as dominant_wavelength
-from .ripples import init_ripples as init_ripples
-from .ripples import power_spectrum_along as power_spectrum_along
-from .ripples import ripple_step as ripple_step
-from .ripples import simulate_ripples as simulate_ripples
-from .ripples import spectral_centroid_wavelength as spectral_centroid_wavelength
 from ._fields import FIELD_SUFFIXES as FIELD_SUFFIXES
 from ._fields import load_field as load_field
 from ._fields import preview_image as preview_image
 from ._fields import save_field as save_field
 from ._fields import simulate_in_chunks as simulate_in_chunks
+from ._transport import creep as creep
+from ._transport import deposit as deposit
+from ._transport import saltate as saltate
+from .cloth import BodyMotion as BodyMotion
+from .cloth import ClothMesh as ClothMesh
+from .cloth import ClothState as ClothState
+from .cloth import DrapedCloth as DrapedCloth
+from .cloth import advance_cloth as advance_cloth
+from .cloth import animate_cloth as animate_cloth
+from .cloth import cloth_mesh as cloth_mesh
+from .cloth import drape_cloth as drape_cloth
+from .cloth import drape_garment as drape_garment
+from .cloth import simulate_cloth as simulate_cloth
+from .dunes import DuneParams as DuneParams
+from .dunes import dune_step as dune_step
+from .dunes import dune_transport as dune_transport
+from .dunes import init_dunes as init_dunes
+from .dunes import simulate_dunes as simulate_dunes
 from .dust import DustParams as DustParams
 from .dust import advect_dust as advect_dust
 from .dust import dust_sizes as dust_sizes
@@ -31,6 +35,16 @@ from .fire import fire_frames as fire_frames
 from .fire import gradient_noise as gradient_noise
 from .fire import permutation_table as permutation_table
 from .fire import turbulence as turbulence
-from .cloth import ClothMesh as ClothMesh
-from .cloth import drape_cloth as drape_cloth
-from .cloth import simulate_cloth as simulate_cloth
+from .footprints import FootParams as FootParams
+from .footprints import press_footprint as press_footprint
+from .footprints import press_trail as press_trail
+from .footprints import relax_to_repose as relax_to_repose
+from .footprints import repose_excess as repose_excess
+from .footprints import trail_steps as trail_steps
+from .ripples import RippleParams as RippleParams
+from .ripples import dominant_wavelength as dominant_wavelength
+from .ripples import init_ripples as init_ripples
+from .ripples import power_spectrum_along as power_spectrum_along
+from .ripples import ripple_step as ripple_step
+from .ripples import simulate_ripples as simulate_ripples
+from .ripples import spectral_centroid_wavelength as spectral_centroid_wavelength

@@ -235,3 +235,27 @@ def test_footprint_detail_window_is_shaded_like_the_ripples_until_pressed():
                                         jnp.broadcast_to(light, d.horizon[0].shape[:2] + (3,))))
 
     assert lit(printed).mean() < lit(detail).mean() - 0.01
+
+
+def test_desert_scene_carries_the_trail():
+    """`desert_scene(footprints=True)`: the trail's window in front of the camera, its relief the
+    window's ripples with the prints pressed in (same sand), in the maps it renders."""
+    from jaxrender.app.scenes.desert import desert_scene
+    from jaxrender.app.scenes.footprints import footprint_detail, trail_window
+    from jaxrender.terrain import window_ripples
+
+    rng = np.random.default_rng(11)
+    dune = rng.uniform(2, 4, (16, 16))
+    ry, rx = np.meshgrid(np.arange(16), np.arange(16), indexing="ij")
+    ripple = np.sin(2 * np.pi * rx / 8.0) + 0.1 * rng.standard_normal((16, 16))
+    scene = desert_scene(dune_field=dune, ripple_field=ripple, texels=16, footprints=True)
+    origin, size = trail_window(16)
+    assert scene.maps.detail is not None
+    assert scene.maps.detail.origin == origin and scene.maps.detail.quads == size
+    assert desert_scene(dune_field=dune, ripple_field=ripple, texels=16).maps.detail is None
+    detail, pressed = footprint_detail(scene.ripple_height, 16, texels=16, levels=4)
+    plain = np.asarray(window_ripples(scene.ripple_height, origin, size, texels=16), np.float64)
+    p = np.asarray(pressed, np.float64)
+    assert abs(p.sum() - plain.sum()) <= 300 * _f32_mass_tol(plain) + _F64_MASS_TOL
+    assert np.abs(p - plain).max() > 0.5 * FootParams().depth   # the prints are there
+    np.testing.assert_allclose(detail.normals[0], scene.maps.detail.normals[0], atol=1e-12)

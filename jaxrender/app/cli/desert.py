@@ -27,6 +27,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         ("ripple-shadows", "ripple shadows (horizon maps)"), ("dust", "sand-dust billboards")]:
         parser.add_argument(f"--{name}", action=argparse.BooleanOptionalAction, default=True,
                             help=f"{help_} (default on)")
+    parser.add_argument("--footprints", action=argparse.BooleanOptionalAction, default=False,
+                        help="a trail of footprints pressed into the sand across the foreground (Fig. 18; default off)")
     parser.add_argument("--dune-size", type=int, default=64, help="dune grid size in quads (default 64)")
     parser.add_argument("--ripple-size", type=int, default=64, help="ripple map size in texels (default 64)")
     parser.add_argument("--texels", type=int, default=64, help="ripple texels per dune quad at level 0 (default 64)")
@@ -53,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
     kwargs = dict(width=args.width, height=args.height, ripples=args.ripples, lod=args.lod, culling=args.culling,
                   dune_shadows=args.dune_shadows, ripple_shadows=args.ripple_shadows, dust=args.dust,
                   sun_elevation=args.sun_elevation, sun_azimuth=args.sun_azimuth, dune_size=args.dune_size,
-                  ripple_size=args.ripple_size, texels=args.texels, seed=args.seed)
+                  ripple_size=args.ripple_size, texels=args.texels, seed=args.seed,
+                  footprints=args.footprints)
     # the first run grows the fields, builds the maps, compiles
     image = render_timed(lambda: render_desert(**kwargs), args.time)
     write_image(out, np.asarray(image, dtype=np.float32), exposure=EXPOSURE)

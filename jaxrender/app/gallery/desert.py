@@ -13,7 +13,7 @@ from ..scenes.desert import render_desert, to_display
 
 def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
     """The paper's Figs. 12-18: without/with ripples, without/with dune shadows, without/with
-    ripple shadows, with dust. Writes PNG + EXR files under `out_dir`."""
+    ripple shadows, with dust and footprints. Writes PNG + EXR files under `out_dir`."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     size = dict(width=240, height=160) if quick else dict(width=720, height=480)
@@ -29,7 +29,8 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
         ("fig15_dune_shadows", "Fig. 15/16: low sun, dune shadows (no ripple shadows)",
          dict(dust=False, sun_elevation=low, ripple_shadows=False)),
         ("fig17_ripple_shadows", "Fig. 17: low sun, dune and ripple shadows", dict(dust=False, sun_elevation=low)),
-        ("fig18_dust", "Fig. 18: with sand dust", dict(sun_elevation=high)),
+        ("fig18_dust", "Fig. 18: with sand dust and a trail of footprints (pressed, relaxed to the angle of repose)",
+         dict(sun_elevation=high, footprints=True)),
     ]
     if quick:  # every switch combination is its own compilation: quick mode shows two of them
         figures = [f for f in figures if f[0] in ("fig13_ripples", "fig18_dust")]

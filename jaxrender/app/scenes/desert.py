@@ -31,6 +31,7 @@ from jaxrender.terrain import (
     quad_capacities,
     render_terrain,
     shadow_steps,
+    with_detail,
 )
 from jaxrender.textures import bilinear
 from sims import (
@@ -43,6 +44,8 @@ from sims import (
     simulate_dust,
     simulate_ripples,
 )
+
+from .footprints import footprint_detail
 
 __all__ = ["DesertScene", "desert_scene", "default_camera", "render_desert", "desert_frame",
            "sky_for_sun", "to_display"]
@@ -84,10 +87,11 @@ def _fields(dune_size: int, ripple_size: int, seed: int, dune_steps: int,
 def desert_scene(*, dune_size: int = 64, ripple_size: int = 64, texels: int = 64, seed: int = 0,
                  dune_steps: int = 800, ripple_steps: int = 2000, dune_slope: float = 0.7,
                  ripple_slope: float = 0.35, directions: int = 8, dune_field: np.ndarray | None = None,
-                 ripple_field: np.ndarray | None = None) -> DesertScene:
+                 ripple_field: np.ndarray | None = None, footprints: bool = False) -> DesertScene:
     """Build the scene: fields from the automata (or given), scaled to world units so that the
     steepest dune slope is `dune_slope` (sand's angle of repose ~35 deg) and the steepest ripple
-    slope `ripple_slope`; then the terrain maps (normal pyramid, grain, horizon maps)."""
+    slope `ripple_slope`; then the terrain maps (normal pyramid, grain, horizon maps). With
+    `footprints`, a trail of footprints crosses the foreground (`.footprints`, Fig. 18)."""
     if dune_field is None or ripple_field is None:
         d, r = _fields(dune_size, ripple_size, seed, dune_steps, ripple_steps)
         dune_field = d if dune_field is None else dune_field
@@ -101,6 +105,9 @@ def desert_scene(*, dune_size: int = 64, ripple_size: int = 64, texels: int = 64
     ripple_j = jnp.asarray(ripple_z, dtype)
     maps = _build_maps(dune_j, ripple_j, key=jax.random.key(seed + 7), spacing=1.0, texels=texels,
                        directions=directions)
+    if footprints:
+        detail, _ = footprint_detail(ripple_j, maps.quads[0], texels=texels, levels=maps.levels, directions=directions)
+        maps = with_detail(maps, detail)
     return DesertScene(maps, ripple_j, dune_j)
 
 
@@ -207,8 +214,8 @@ def desert_frame(scene: DesertScene, camera: Camera, *, sun_elevation: float = 1
 
 
 @functools.lru_cache(maxsize=4)
-def _cached_scene(dune_size: int, ripple_size: int, texels: int, seed: int) -> DesertScene:
-    return desert_scene(dune_size=dune_size, ripple_size=ripple_size, texels=texels, seed=seed)
+def _cached_scene(dune_size: int, ripple_size: int, texels: int, seed: int, footprints: bool) -> DesertScene:
+    return desert_scene(dune_size=dune_size, ripple_size=ripple_size, texels=texels, seed=seed, footprints=footprints)
 
 
 _plan = jax.jit(plan_quads, static_argnames=("lod", "culling"))
@@ -244,9 +251,10 @@ def render_desert(*, width: int = 720, height: int = 480, ripples: bool = True, 
                   culling: bool = True, dune_shadows: bool = True, ripple_shadows: bool = True, dust: bool = True,
                   sun_elevation: float = 18.0, sun_azimuth: float = 165.0, dune_size: int = 64,
                   ripple_size: int = 64, texels: int = 64, seed: int = 0, camera: Camera | None = None,
-                  timing: dict | None = None, **frame_kwargs) -> Array:
-    """The showcase desert with the paper's switches; returns linear RGB (H x W x 3)."""
-    scene = _cached_scene(dune_size, ripple_size, texels, seed)
+                  footprints: bool = False, timing: dict | None = None, **frame_kwargs) -> Array:
+    """The showcase desert with the paper's switches (`footprints`: a trail of footprints, Fig. 18);
+    returns linear RGB (H x W x 3)."""
+    scene = _cached_scene(dune_size, ripple_size, texels, seed, footprints)
     camera = camera or default_camera(scene, width=width, height=height)
     return desert_frame(scene, camera, sun_elevation=sun_elevation, sun_azimuth=sun_azimuth, ripples=ripples, lod=lod,
                         culling=culling, dune_shadows=dune_shadows, ripple_shadows=ripple_shadows, dust=dust,
