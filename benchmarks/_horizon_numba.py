@@ -26,59 +26,64 @@ def _steps_and_coef(size: int, directions: int, texel_size: float, dtype) -> tup
 
 @numba.njit(parallel=True, cache=True, fastmath=False)
 def _scan(h, steps, coef, out):
+    """Per (direction, row): for each step k, the row k e_y below read k e_x texels on, split at the
+    wrap into two contiguous runs (no modulo in the inner loop, which LLVM vectorizes)."""
     size = h.shape[0]
-    for d in range(steps.shape[0]):
+    for dy in numba.prange(steps.shape[0] * size):  # one parallel region over (direction, row)
+        d, y = dy // size, dy % size
         ix, iy = steps[d, 0], steps[d, 1]
-        for y in numba.prange(size):
-            for x in range(size):
-                h0 = h[y, x]
-                best = h0 * 0
-                for k in range(1, size):
-                    s = (h[(y + k * iy) % size, (x + k * ix) % size] - h0) * coef[d, k]
-                    if s > best:
-                        best = s
-                out[d, y, x] = best
+        best = out[d, y]
+        best[:] = 0
+        here = h[y]
+        for k in range(1, size):
+            row = h[(y + k * iy) % size]
+            sx = (k * ix) % size
+            c = coef[d, k]
+            for x in range(size - sx):
+                best[x] = max(best[x], (row[x + sx] - here[x]) * c)
+            for x in range(size - sx, size):
+                best[x] = max(best[x], (row[x + sx - size] - here[x]) * c)
 
 
 @numba.njit(parallel=True, cache=True, fastmath=False)
 def _sweep(h, steps, coef, out):
     size = h.shape[0]
-    for d in range(steps.shape[0]):
+    for dl in numba.prange(steps.shape[0] * size):  # one parallel region over (direction, line)
+        d, lane = dl // size, dl % size
         ix, iy = steps[d, 0], steps[d, 1]
-        for lane in numba.prange(size):
-            y0 = np.int64(lane) * (iy == 0)  # the line starts at (lane, 0) or at (0, lane)
-            x0 = np.int64(lane) * (iy != 0)
-            line = np.empty(size, h.dtype)  # the line, rotated to end at its maximum
-            ys = np.empty(size, np.int64)
-            xs = np.empty(size, np.int64)
-            m = 0
-            for k in range(size):
-                yy, xx = (y0 + k * iy) % size, (x0 + k * ix) % size
-                if h[yy, xx] > h[(y0 + m * iy) % size, (x0 + m * ix) % size]:
-                    m = k
-            for k in range(size):
-                p = (k + m + 1) % size
-                ys[k] = (y0 + p * iy) % size
-                xs[k] = (x0 + p * ix) % size
-                line[k] = h[ys[k], xs[k]]
-            hull = np.empty(size, np.int64)  # stack of hull vertices, nearest on top
-            top = 0
-            hull[0] = size - 1
-            out[d, ys[size - 1], xs[size - 1]] = 0
-            for t in range(size - 2, -1, -1):
-                ht = line[t]
-                # pop while the next vertex is seen at a slope at least as steep
-                while top > 0:
-                    j, nj = hull[top], hull[top - 1]
-                    if (line[nj] - ht) * (j - t) >= (line[j] - ht) * (nj - t):
-                        top -= 1
-                    else:
-                        break
-                j = hull[top]
-                s = (line[j] - ht) * coef[d, j - t]
-                out[d, ys[t], xs[t]] = s if s > 0 else 0
-                top += 1
-                hull[top] = t
+        y0 = np.int64(lane) * (iy == 0)  # the line starts at (lane, 0) or at (0, lane)
+        x0 = np.int64(lane) * (iy != 0)
+        line = np.empty(size, h.dtype)  # the line, rotated to end at its maximum
+        ys = np.empty(size, np.int64)
+        xs = np.empty(size, np.int64)
+        m = 0
+        for k in range(size):
+            yy, xx = (y0 + k * iy) % size, (x0 + k * ix) % size
+            if h[yy, xx] > h[(y0 + m * iy) % size, (x0 + m * ix) % size]:
+                m = k
+        for k in range(size):
+            p = (k + m + 1) % size
+            ys[k] = (y0 + p * iy) % size
+            xs[k] = (x0 + p * ix) % size
+            line[k] = h[ys[k], xs[k]]
+        hull = np.empty(size, np.int64)  # stack of hull vertices, nearest on top
+        top = 0
+        hull[0] = size - 1
+        out[d, ys[size - 1], xs[size - 1]] = 0
+        for t in range(size - 2, -1, -1):
+            ht = line[t]
+            # pop while the next vertex is seen at a slope at least as steep
+            while top > 0:
+                j, nj = hull[top], hull[top - 1]
+                if (line[nj] - ht) * (j - t) >= (line[j] - ht) * (nj - t):
+                    top -= 1
+                else:
+                    break
+            j = hull[top]
+            s = (line[j] - ht) * coef[d, j - t]
+            out[d, ys[t], xs[t]] = s if s > 0 else 0
+            top += 1
+            hull[top] = t
 
 
 def horizon_scan_numba(h: np.ndarray, directions: int = 8, texel_size: float = 1.0) -> np.ndarray:

@@ -19,9 +19,9 @@ finds each texel's tangent vertex (integers), and the slopes are computed from t
 with the full search's formula, so they are equal to it and differentiable like it.
 
 Where the time goes (CPU): each step's walk is a while loop over all D S lanes that runs until
-the lane with the longest walk is done (about 8-10 rounds for 8192 lanes where the average walk
-is ~1), and each round is two gathers; a compiled sequential sweep (benchmarks/_horizon_numba.py)
-walks only as far as each line needs. See benchmarks/RESULTS.md, horizon maps.
+the lane with the longest walk is done (a few rounds where the average walk is ~1), each round two
+gathers; then the gathers that lay the lines out and back (one texel index per sample, computed,
+fused into the gather). See benchmarks/RESULTS.md, horizon maps.
 """
 
 from __future__ import annotations
@@ -31,54 +31,16 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 
-def _flip(a: Array) -> Array:
-    """a[(-k) mod S] along axis 0 (a periodic reversal; its own inverse)."""
-    return jnp.roll(a[::-1], 1, axis=0)
+def _slope(h_j: Array, h_t: Array, dist: Array, length: Array) -> Array:
+    """(h_j - h_t) * ((1 / k) / |e|), clamped at 0: the full search's formula and rounding."""
+    return jnp.maximum((h_j - h_t) * ((1.0 / dist.astype(h_t.dtype)) / length), 0.0)
 
 
-def _skew(a: Array, sign: int) -> Array:
-    """c[k, l] = a[k, (l + sign k) mod S] for a square a, by reshaping the row-doubled field (a copy,
-    no gather): row k of the doubled field, read with a stride of 2 S + sign, starts k places on."""
-    size = a.shape[0]
-    flat = jnp.concatenate([a, a], axis=1).ravel()
-    if sign > 0:
-        return jnp.pad(flat, (0, size)).reshape(size, 2 * size + 1)[:, :size]
-    return flat[size:].reshape(size, 2 * size - 1)[:, :size]
-
-
-def _to_lines(height: Array, steps: list[tuple[int, int]]) -> Array:
-    """(S positions, D S lanes): lane d S + l holds line l of direction d, position k at texel
-    (y, x) = (l, k e_x) for the horizontal directions and (k e_y, l + k e_x) otherwise (mod S)."""
-    blocks = []
-    for ix, iy in steps:
-        if iy == 0:
-            blocks.append(height.T if ix > 0 else _flip(height.T))
-        else:
-            g = height if iy > 0 else _flip(height)
-            blocks.append(g if ix == 0 else _skew(g, ix))
-    return jnp.concatenate(blocks, axis=1)
-
-
-def _from_lines(lines: Array, steps: list[tuple[int, int]]) -> Array:
-    """The inverse of `_to_lines`: (D, S, S) maps from line order."""
-    size = lines.shape[0]
-    maps = []
-    for d, (ix, iy) in enumerate(steps):
-        block = lines[:, d * size:(d + 1) * size]
-        if iy == 0:
-            maps.append(block.T if ix > 0 else _flip(block).T)
-        else:
-            g = block if ix == 0 else _skew(block, -ix)
-            maps.append(g if iy > 0 else _flip(g))
-    return jnp.stack(maps)
-
-
-def _tangent_vertices(rows: Array) -> Int[Array, "S L"]:
+def _scan(rows: Array, length: Array) -> tuple[Int[Array, "S L"], Float[Array, "S L"]]:
     """For lines that each end at their highest sample (`rows` (S, L): sample k of line l, row S - 1
-    the maxima), the sample j > k that sees sample k under the steepest slope (h_j - h_k) / (j - k);
-    S for the last row (nothing ahead)."""
+    the maxima; `length` (L,): |e| texel_size per line): per sample k the sample j > k seen under
+    the steepest slope (S for the last row: nothing ahead), and that slope (`_slope`)."""
     size, lanes = rows.shape
-    rows = jax.lax.stop_gradient(rows)
     flat = rows.ravel()
     lane = jnp.arange(lanes, dtype=jnp.int32)
 
@@ -87,7 +49,7 @@ def _tangent_vertices(rows: Array) -> Int[Array, "S L"]:
         return (nj < size) & ((h_n - h_t) * (j - t).astype(rows.dtype) >= (h_j - h_t) * (nj - t).astype(rows.dtype))
 
     def step(i, state):
-        nxt, j_prev, h_prev = state
+        nxt, out, j_prev, h_prev = state
         t = size - 2 - i
         h_t = rows[t]
 
@@ -103,31 +65,71 @@ def _tangent_vertices(rows: Array) -> Int[Array, "S L"]:
         j = jnp.where(up, j_prev, t + 1)
         h_j = jnp.where(up, h_prev, rows[t + 1])
         j, h_j, _ = jax.lax.while_loop(lambda c: c[2], walk, (j, h_j, jnp.any(up)))
-        return jax.lax.dynamic_update_slice(nxt, j, (t * lanes,)), j, h_j
+        out = jax.lax.dynamic_update_slice(out, _slope(h_j, h_t, j - t, length)[None], (t, 0))
+        return jax.lax.dynamic_update_slice(nxt, j, (t * lanes,)), out, j, h_j
 
     nxt = jnp.full((size * lanes,), size, jnp.int32)  # `size`: no next vertex (the line's maximum)
-    init = (nxt, jnp.full((lanes,), size, jnp.int32), rows[size - 1])
-    nxt, _, _ = jax.lax.fori_loop(0, size - 1, step, init)
-    return nxt.reshape(size, lanes)
+    init = (nxt, jnp.zeros_like(rows), jnp.full((lanes,), size, jnp.int32), rows[size - 1])
+    nxt, out, _, _ = jax.lax.fori_loop(0, size - 1, step, init)
+    return nxt.reshape(size, lanes), out
+
+
+@jax.custom_jvp
+def _swept_slopes(rows: Array, length: Array) -> Float[Array, "S L"]:
+    """The slopes of `_scan`, differentiable in `rows` like the full search (through the chosen
+    sample's height and the texel's own)."""
+    return _scan(rows, length)[1]
+
+
+def _slopes_at(rows: Array, length: Array, best: Array) -> Array:
+    """`_scan`'s slopes recomputed from its choices (what the derivative goes through)."""
+    size = rows.shape[0]
+    k = jnp.arange(size, dtype=jnp.int32)[:, None]
+    ahead = jnp.take_along_axis(rows, jnp.minimum(best, size - 1), axis=0)
+    return jnp.where(best < size, _slope(ahead, rows, jnp.maximum(best - k, 1), length[None, :]), 0.0)
+
+
+@_swept_slopes.defjvp
+def _swept_slopes_jvp(primals, tangents):
+    rows, length = primals
+    best, slopes = _scan(rows, length)
+    _, tangent = jax.jvp(lambda r, n: _slopes_at(r, n, best), primals, tangents)
+    return slopes, tangent
 
 
 def lattice_sweep(height: Float[Array, "S S"], steps: list[tuple[int, int]],
                   lengths: list[float]) -> Float[Array, "D S S"]:
     """Horizon slopes max(0, max_k (h(P + k e) - h(P)) / (k |e|)) of a square periodic field along
-    lattice steps e = (e_x, e_y) in {-1, 0, 1}^2 (not both 0), `lengths` |e| texel_size, by the sweep."""
-    size = height.shape[0]
-    dtype = height.dtype
-    lines = _to_lines(height, steps)
-    # rotate each line to end at its maximum: rotated[k] = lines[(k + argmax + 1) mod S]
-    shift = jnp.argmax(jax.lax.stop_gradient(lines), axis=0).astype(jnp.int32) + 1
-    k = jnp.arange(size, dtype=jnp.int32)[:, None]
-    rotated = jnp.take_along_axis(lines, (k + shift[None, :]) % size, axis=0)
-    best = _tangent_vertices(rotated)
-    # slopes with the full search's rounding: (h_j - h_t) * ((1 / k) / |e|)
-    inv_k = 1.0 / jnp.arange(size + 1, dtype=dtype).at[0].set(1.0)
-    coef = inv_k[None, :] / jnp.asarray(lengths, dtype)[:, None]  # (D, S + 1)
-    ahead = jnp.take_along_axis(rotated, jnp.minimum(best, size - 1), axis=0)
-    lane_dir = jnp.arange(rotated.shape[1]) // size
-    slope = (ahead - rotated) * coef[lane_dir[None, :], best - k]
-    slope = jnp.where(best < size, jnp.maximum(slope, 0.0), 0.0)
-    return _from_lines(jnp.take_along_axis(slope, (k - shift[None, :]) % size, axis=0), steps)
+    lattice steps e = (e_x, e_y) in {-1, 0, 1}^2 (not both 0; steps[d + D/2] = -steps[d]), `lengths`
+    |e| texel_size, by the sweep. Line l of direction d: position k at texel (y, x) = (l, k e_x) for
+    the horizontal directions, (k e_y, l + k e_x) otherwise (mod S); all layouts are gathers with
+    computed indices (no transposed or skewed copies)."""
+    size, n_dir = height.shape[0], len(steps)
+    ix = jnp.asarray([e[0] for e in steps], jnp.int32)[:, None, None]
+    iy = jnp.asarray([e[1] for e in steps], jnp.int32)[:, None, None]
+    horizontal = iy == 0
+    flat = height.ravel()
+
+    def texel(k, line):  # flat texel index of position k of `line`, per direction
+        y = jnp.where(horizontal, line, (k * iy) % size)
+        x = jnp.where(horizontal, (k * ix) % size, (line + k * ix) % size)
+        return y * size + x
+
+    k = jnp.arange(size, dtype=jnp.int32)[None, :, None]
+    line = jnp.arange(size, dtype=jnp.int32)[None, None, :]
+    # each line's highest sample; direction d + D/2 walks the lines of d backward (position k <-> -k)
+    half = n_dir // 2
+    top = jnp.argmax(jax.lax.stop_gradient(flat)[texel(k, line)[:half]], axis=1).astype(jnp.int32)
+    shift = jnp.concatenate([top, (-top) % size])[:, None, :] + 1
+    # rotated[r, d S + l] = sample (r + shift) mod S of line l of direction d: each line ends at its maximum
+    rotated = jnp.moveaxis(flat[texel((k + shift) % size, line)], 0, 1).reshape(size, n_dir * size)
+    length = jnp.repeat(jnp.asarray(lengths, height.dtype), size)
+    slopes = _swept_slopes(rotated, length).ravel()
+    # back to texels: texel (d, y, x) is position kp of line l, rotated position (kp - shift) mod S
+    y = jnp.arange(size, dtype=jnp.int32)[None, :, None]
+    x = jnp.arange(size, dtype=jnp.int32)[None, None, :]
+    kp = jnp.where(horizontal, (x * ix) % size, (y * iy) % size)
+    ln = jnp.where(horizontal, y, (x - kp * ix) % size)
+    d = jnp.arange(n_dir, dtype=jnp.int32)[:, None, None]
+    r = (kp - shift[:, 0, :][d, ln]) % size
+    return slopes[r * (n_dir * size) + d * size + ln]

@@ -1,0 +1,153 @@
+"""Run every benchmark and rebuild the summary table of benchmarks/RESULTS.md from their results.
+
+    python benchmarks/run_all.py --quick        # every script with --quick (small sizes): do they
+                                                # still run? writes nothing into RESULTS.md or results/
+    python benchmarks/run_all.py                # every script at full size (long), then the table
+    python benchmarks/run_all.py --table-only   # rebuild the table from benchmarks/results/*.json
+    python benchmarks/run_all.py --only horizon_speed,fit_speed   # a subset, then the table
+
+The scripts are the `benchmarks/*.py` not starting with `_` (this one excepted), so new scripts are
+included without registering them. Each writes its headline rows with `_results.write_results` to
+results/NAME.json; the table between the `summary:begin/end` markers of RESULTS.md gets one row
+per result row, matched by (issue, target): the measured text and verdict come from the JSON, and
+table rows no script writes are kept as they are (their verdict and notes included).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+RESULTS_MD = HERE / "RESULTS.md"
+RESULTS_DIR = HERE / "results"
+BEGIN, END = "<!-- summary:begin -->", "<!-- summary:end -->"
+HEADER = ["issue", "target", "measured", "status", "notes"]
+
+
+def scripts() -> list[Path]:
+    return sorted(p for p in HERE.glob("*.py") if not p.name.startswith("_") and p.name != Path(__file__).name)
+
+
+def _fingerprint() -> str:
+    """Hash of RESULTS.md and results/: --quick must leave both untouched."""
+    digest = hashlib.sha256(RESULTS_MD.read_bytes() if RESULTS_MD.exists() else b"")
+    for p in sorted(RESULTS_DIR.glob("*")) if RESULTS_DIR.exists() else []:
+        digest.update(p.name.encode() + p.read_bytes())
+    return digest.hexdigest()
+
+
+def run_script(path: Path, quick: bool, timeout: float) -> tuple[str, int, float, str]:
+    env = dict(os.environ)
+    if quick:
+        env["BENCH_NO_RESULTS"] = "1"
+    cmd = [sys.executable, str(path)] + (["--quick"] if quick else [])
+    start = time.perf_counter()
+    try:
+        proc = subprocess.run(cmd, cwd=HERE.parent, env=env, capture_output=True, text=True, timeout=timeout)
+        code, tail = proc.returncode, (proc.stdout + proc.stderr)[-2000:]
+    except subprocess.TimeoutExpired:
+        code, tail = 124, f"timed out after {timeout:.0f} s"
+    return path.name, code, time.perf_counter() - start, tail
+
+
+def _split_row(line: str) -> list[str]:
+    cells, cur, escaped = [], "", False
+    for ch in line.strip()[1:-1]:
+        if ch == "|" and not escaped:
+            cells.append(cur.strip())
+            cur = ""
+        else:
+            cur += ch
+        escaped = ch == "\\"
+    return cells + [cur.strip()]
+
+
+def _cell(text: str) -> str:
+    return " ".join(str(text).split()).replace("|", "\\|")
+
+
+def summary_table(old_rows: list[list[str]], results: list[dict]) -> list[str]:
+    """The new table: old rows in their order, updated from `results` where (issue, target)
+    match; result rows with no old row appended."""
+    rows = [r + [""] * (len(HEADER) - len(r)) for r in old_rows]
+    index = {(r[0], r[1]): i for i, r in enumerate(rows)}
+    for rec in results:
+        for res in rec["rows"]:
+            load = rec.get("load_average_1_5_15", [float("nan")])[0]
+            measured = f"{res['measured']} [{rec['date_utc']} UTC, load {load:.1f}, `{rec['command']}`]"
+            cells = [res["issue"], res["target"], measured, res["status"], res.get("notes", "")]
+            key = (_cell(res["issue"]), _cell(res["target"]))
+            if key in index:
+                old = rows[index[key]]
+                rows[index[key]] = [_cell(c) for c in cells[:4]] + [_cell(cells[4]) or old[4]]
+            else:
+                index[key] = len(rows)
+                rows.append([_cell(c) for c in cells])
+    lines = ["| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
+    return lines + ["| " + " | ".join(r) + " |" for r in rows]
+
+
+def rebuild_table() -> None:
+    text = RESULTS_MD.read_text()
+    if BEGIN not in text or END not in text:
+        raise SystemExit(f"{RESULTS_MD}: no {BEGIN} ... {END} markers around the summary table")
+    head, rest = text.split(BEGIN, 1)
+    body, tail = rest.split(END, 1)
+    old = [_split_row(ln) for ln in body.splitlines() if ln.startswith("|") and not ln.startswith("|---")]
+    old = [r for r in old if [c.lower() for c in r[:2]] != ["issue", "target"]]
+    results = [json.loads(p.read_text()) for p in sorted(RESULTS_DIR.glob("*.json"))]
+    table = summary_table(old, results)
+    RESULTS_MD.write_text(head + BEGIN + "\n" + "\n".join(table) + "\n" + END + tail)
+    print(f"{RESULTS_MD}: summary table rebuilt from {len(results)} result files")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smoke run: every script with --quick, nothing written")
+    parser.add_argument("--table-only", action="store_true", help="only rebuild the summary table")
+    parser.add_argument("--only", default=None, help="comma-separated script names (without .py)")
+    parser.add_argument("--jobs", type=int, default=2 if "--quick" in (argv or sys.argv) else 1,
+                        help="scripts at once (default 2 with --quick, else 1 so timings do not compete)")
+    parser.add_argument("--timeout", type=float, default=None, help="seconds per script (default 170 quick, none)")
+    args = parser.parse_args(argv)
+    if args.table_only:
+        rebuild_table()
+        return 0
+    todo = scripts()
+    if args.only:
+        names = {n.strip().removesuffix(".py") for n in args.only.split(",")}
+        todo = [p for p in todo if p.stem in names]
+        missing = names - {p.stem for p in todo}
+        if missing:
+            print(f"run_all: no benchmark script named {sorted(missing)}", file=sys.stderr)
+            return 2
+    before = _fingerprint() if args.quick else None
+    timeout = args.timeout or (170.0 if args.quick else None)
+    start = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        outcomes = list(pool.map(lambda p: run_script(p, args.quick, timeout), todo))
+    failed = [o for o in outcomes if o[1] != 0]
+    for name, code, secs, tail in outcomes:
+        print(f"{'ok  ' if code == 0 else 'FAIL'} {name:28s} {secs:6.1f} s" + (f" (exit {code})" if code else ""))
+    for name, code, _, tail in failed:
+        print(f"\n--- {name} (exit {code}) ---\n{tail}", file=sys.stderr)
+    print(f"{len(outcomes)} scripts in {time.perf_counter() - start:.0f} s, {len(failed)} failed")
+    if args.quick:
+        if _fingerprint() != before:
+            print("run_all --quick: RESULTS.md or results/ changed (a --quick run must write neither)", file=sys.stderr)
+            return 1
+    elif not failed or args.only:
+        rebuild_table()
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
