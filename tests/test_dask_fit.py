@@ -12,7 +12,7 @@ import pytest
 
 distributed = pytest.importorskip("distributed")
 
-from fitting import fit_store, ingest_capture, synth_capture  # noqa: E402
+from fitting import fit_store, ingest_capture, open_store, synth_capture  # noqa: E402
 from jaxrender.io import read_btf  # noqa: E402
 
 CHUNK = 8  # 8 x 8 texels: 8 tiles, 8 tasks
@@ -89,4 +89,31 @@ def test_a_killed_worker_does_not_fail_the_fit(setup):
     thread.join(600)
     assert not thread.is_alive() and not errors, errors
     assert victim not in client.run(os.getpid).values()  # that worker is gone (the nanny started another)
+    _assert_same(out, ref)
+
+
+def test_rerun_on_the_cluster_resumes_from_the_tiles_written(setup):
+    """The whole cluster died after 3 tiles (here: a local run stopped after 3): a rerun on the
+    cluster submits only the other 5 and the maps are the same."""
+    from fitting.tiles import fit_store_maps
+    from jaxrender.io import InputError
+
+    root, store_dir, ref, client = setup
+    out = root / "btf_resumed"
+
+    def stop(i):
+        if i == 2:
+            raise InputError(None, "stopped")
+
+    with jax.enable_x64(False), pytest.raises(InputError):
+        fit_store_maps(open_store(store_dir), partial_dir=out / ".partial", chunk=CHUNK, progress=False,
+                       on_chunk=stop)
+    before = {p.name: p.stat().st_mtime_ns for p in (out / ".partial").glob("chunk_*.npz")}
+    assert len(before) == 3
+    fitted = []
+    fit_store_maps(open_store(store_dir), partial_dir=out / ".partial", chunk=CHUNK, progress=False,
+                   scheduler=client, on_chunk=fitted.append)
+    assert sorted(fitted) == sorted(set(range(8)) - {int(name[6:12]) for name in before})
+    assert all((out / ".partial" / name).stat().st_mtime_ns == t for name, t in before.items())
+    fit_store(store_dir, out, chunk=CHUNK, pyramid=False, progress=False, scheduler=client)
     _assert_same(out, ref)
