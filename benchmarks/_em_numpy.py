@@ -4,12 +4,12 @@ as its input. Not part of the package."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
 
-from fitting.em import (DEFAULT_ITERATIONS, DEFAULT_ORDER, ONE_LOBE_TOLERANCE, TWO_LOBE_GAIN, VAR_FLOOR,
-                        VIRTUAL)
+from fitting.em import DEFAULT_ITERATIONS, DEFAULT_ORDER, ONE_LOBE_TOLERANCE, TWO_LOBE_GAIN, VAR_FLOOR, VIRTUAL
 from jaxrender.brdf import SIGMA_FLOOR
 
 _HZ_FLOOR = 0.05
@@ -232,4 +232,53 @@ def pyramid_numpy(level0: dict, *, iterations=DEFAULT_ITERATIONS) -> list[dict]:
                        else {kk: vv.reshape((hh, ww) + vv.shape[1:]) for kk, vv in v.items()})
                    for k, v in out.items() if k in ("rho_d", "lobe0", "lobe1", "weight")}
         levels.append(current)
+    return levels
+
+
+def _split(d, parts: int):
+    """A dict of arrays (or dicts of arrays) with a leading texel axis N, cut into `parts` pieces."""
+    n = d["weight"].shape[0]
+    cuts = np.linspace(0, n, parts + 1).astype(int)
+    piece = lambda v, a, b: v[a:b] if not isinstance(v, dict) else {k: x[a:b] for k, x in v.items()}  # noqa: E731
+    return [{k: piece(v, a, b) for k, v in d.items()} for a, b in zip(cuts[:-1], cuts[1:])]
+
+
+def _join(pieces):
+    first = pieces[0]
+    return {k: (np.concatenate([p[k] for p in pieces]) if not isinstance(v, dict)
+                else {kk: np.concatenate([p[k][kk] for p in pieces]) for kk in v})
+            for k, v in first.items() if k in ("rho_d", "lobe0", "lobe1", "weight")}
+
+
+def _em_texels_cpu(children: dict, iterations: int) -> tuple[dict, float]:
+    """em_texels_numpy in a pool worker, with the worker's CPU seconds (the parent cannot see them)."""
+    import time
+
+    start = time.process_time()
+    out = em_texels_numpy(children, iterations=iterations)
+    return out, time.process_time() - start
+
+
+def pyramid_numpy_pool(level0: dict, pool, processes: int, *, iterations=DEFAULT_ITERATIONS,
+                       min_split: int = 256, worker_cpu: list | None = None) -> list[dict]:
+    """`pyramid_numpy` with each level's texels split between the processes of `pool` (a
+    multiprocessing pool, one process per core): the peer allowed as many cores as JAX. Levels with
+    fewer than `min_split` texels stay in this process (sending them costs more than it saves).
+    The workers' CPU seconds of this call are appended to `worker_cpu` if given."""
+    levels, current, cpu = [], level0, 0.0
+    while max(current["weight"].shape[:2]) > 1:
+        hh, ww = (s // 2 + s % 2 for s in current["weight"].shape[:2])
+        children = gather_children_numpy(current)
+        if hh * ww >= min_split:
+            done = pool.map(functools.partial(_em_texels_cpu, iterations=iterations), _split(children, processes))
+            out = _join([o for o, _ in done])
+            cpu += sum(c for _, c in done)
+        else:
+            out = em_texels_numpy(children, iterations=iterations)
+        current = {k: (v.reshape((hh, ww) + v.shape[1:]) if not isinstance(v, dict)
+                       else {kk: vv.reshape((hh, ww) + vv.shape[1:]) for kk, vv in v.items()})
+                   for k, v in out.items() if k in ("rho_d", "lobe0", "lobe1", "weight")}
+        levels.append(current)
+    if worker_cpu is not None:
+        worker_cpu.append(cpu)
     return levels

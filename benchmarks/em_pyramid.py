@@ -16,14 +16,30 @@ against a batched numpy implementation of the same EM, and agreement with scikit
     python benchmarks/em_pyramid.py [--quick]
     python benchmarks/em_pyramid.py --speed-runs 5   # only (b) on the woven BTF: 5 measurements
                                                      # and the time per level
+    python benchmarks/em_pyramid.py --equal-cores    # only (d): JAX vs numpy at equal cores
+
+(d) Equal cores (issue 16). (b) lets JAX use both cores while the numpy peer runs one thread. Here
+    the whole woven pyramid is timed twice, interleaved with the peer, wall and CPU, min / median /
+    max: pinned to core 0 with every library at one thread (JAX's CPU pools included), and free on
+    both cores with the numpy peer split over two processes (benchmarks/_em_numpy.py,
+    `pyramid_numpy_pool`: each level's texels halved between a 2-process pool). Part of the default run.
 """
 
 from __future__ import annotations
 
+# ruff: noqa: E402  (the thread counts are set by equal_cores before numpy / jax are imported)
+import sys
+
+from _compare import equal_cores  # noqa: I001  (first: thread counts are set before numpy / jax load)
+
+CORES = equal_cores() if "--cores" in sys.argv else None
+
 import argparse
+import json
 import os
 import platform
-import sys
+import subprocess
+import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -34,10 +50,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from _em_numpy import em_texels_numpy, gather_children_numpy, pyramid_numpy  # noqa: E402
+from _em_numpy import em_texels_numpy, gather_children_numpy, pyramid_numpy, pyramid_numpy_pool  # noqa: E402
 
-from fitting.em import (GaussianMixture, em_downsample, em_fit, em_texels, gather_children,  # noqa: E402
-                        mip_texel, moment_matched_texel)
+from fitting.em import (  # noqa: E402
+    GaussianMixture,
+    em_downsample,
+    em_fit,
+    em_texels,
+    gather_children,
+    mip_texel,
+    moment_matched_texel,
+)
 from fitting.pyramid import pyramid_levels, pyramid_sizes  # noqa: E402
 from fitting.synth import synth_maps  # noqa: E402
 from jaxrender.brdf import BTFTexel, reflectance  # noqa: E402
@@ -313,7 +336,8 @@ def speed_runs(runs: int, size=(256, 256)):
     """(b) on the woven BTF only, `runs` times (each a median of 31 JAX / 7 numpy calls), then the
     time of every level alone (each from the same JAX input level)."""
     level0 = synth_maps(jax.random.PRNGKey(0), size)
-    print(f"## Woven {size[0]}x{size[1]} pyramid, {runs} measurements (load average at start {os.getloadavg()[0]:.1f})\n")
+    print(f"## Woven {size[0]}x{size[1]} pyramid, {runs} measurements "
+          f"(load average at start {os.getloadavg()[0]:.1f})\n")
     print("| run | JAX wall (s) | numpy wall (s) | speed-up (wall) | speed-up (CPU) |\n|---|---|---|---|---|")
     ratios = []
     for run in range(runs):
@@ -332,12 +356,89 @@ def speed_runs(runs: int, size=(256, 256)):
         print(f"| {i + 1} | {h}x{w} | {ours:.4f} | {theirs:.4f} | {theirs / ours:.1f}x |")
 
 
+def equal_cores_speed(size, repeats: int) -> dict:
+    """(d) in this process's core setting (`--cores`): the woven pyramid, JAX vs the numpy peer
+    (one process at 1 core, a 2-process pool at 2 cores), interleaved."""
+    import multiprocessing
+
+    from _compare import compare, load
+
+    level0 = synth_maps(jax.random.PRNGKey(0), size)
+    d0 = _as_dict(level0)
+    pool = multiprocessing.get_context("spawn").Pool(2) if CORES == 2 else None
+    try:
+        worker_cpu = []  # the pool workers' CPU seconds per call, added to the parent's below
+        peer = (lambda: pyramid_numpy_pool(d0, pool, 2, worker_cpu=worker_cpu)) if pool else (lambda: pyramid_numpy(d0))
+        if pool:  # the pool's peer computes what the one-process peer does
+            a, b = pyramid_numpy(d0), peer()
+            assert all(np.allclose(x["rho_d"], y["rho_d"]) and np.array_equal(x["weight"] > 0, y["weight"] > 0)
+                       for x, y in zip(a, b))
+        load0 = load()
+        worker_cpu.clear()
+        stats = compare({"jax": lambda: pyramid_levels(level0)[0], "numpy": peer}, repeats)
+        if pool:  # worker_cpu[0] is compare's first (warm-up) call
+            stats["numpy"].cpu = [c + w for c, w in zip(stats["numpy"].cpu, worker_cpu[1:])]
+    finally:
+        if pool:
+            pool.close()
+    return {"cores": CORES, "size": list(size), "load": [load0, load()], "peer": "numpy, 2 processes" if pool
+            else "numpy, 1 process", **{k: {"wall": s.wall, "cpu": s.cpu, "compile_s": s.compile_s}
+                                         for k, s in stats.items()}}
+
+
+def equal_cores_report(records: list[dict], quick: bool) -> None:
+    from _results import write_results
+
+    mmm = lambda xs: f"{min(xs):.3f} / {np.median(xs):.3f} / {max(xs):.3f}"  # noqa: E731
+    print("\n## (d) Equal cores: whole woven pyramid, interleaved runs\n")
+    print("| cores | peer | JAX wall s (min / med / max) | peer wall s | ratio wall (median; worst-best) | "
+          "JAX CPU s | peer CPU s | ratio CPU (median) | load |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    parts = []
+    ok = True
+    for r in records:
+        jw, pw, jc, pc = r["jax"]["wall"], r["numpy"]["wall"], r["jax"]["cpu"], r["numpy"]["cpu"]
+        med = np.median(pw) / np.median(jw)
+        worst, best = min(pw) / max(jw), max(pw) / min(jw)
+        cpu = np.median(pc) / np.median(jc)
+        print(f"| {r['cores']} | {r['peer']} | {mmm(jw)} | {mmm(pw)} | {med:.1f}x ({worst:.1f}-{best:.1f}x) | "
+              f"{mmm(jc)} | {mmm(pc)} | {cpu:.1f}x | {r['load'][0]:.1f}-{r['load'][1]:.1f} |")
+        parts.append(f"{r['cores']} core{'s' if r['cores'] > 1 else ''} ({r['peer']}): {med:.1f}x wall "
+                     f"({worst:.1f}-{best:.1f}), {cpu:.1f}x CPU")
+        ok = ok and med >= 10
+    write_results("em_pyramid", [dict(
+        issue="5 EM pyramid", target=">= 10x batched numpy over a 256x256 pyramid (equal cores)",
+        measured=f"woven {records[0]['size'][0]}^2: " + "; ".join(parts), status="met" if ok else "missed",
+        notes="1 core: both pinned to core 0, one thread each; 2 cores: JAX's pools vs numpy in 2 processes")],
+        quick=quick)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small sizes (about a minute)")
     parser.add_argument("--speed-runs", type=int, default=0, metavar="N",
                         help="only the woven pyramid's speed, N measurements, and the time per level")
+    parser.add_argument("--equal-cores", action="store_true", help="only (d), both core settings")
+    parser.add_argument("--cores", type=int, default=None, help="(d) in one core setting only (child run)")
+    parser.add_argument("--emit", type=Path, default=None, help="(d) child: write the raw record here")
     args = parser.parse_args(argv)
+    eq_size, eq_repeats = ((32, 32), 1) if args.quick else ((256, 256), 7)
+    if args.cores is not None:
+        rec = equal_cores_speed(eq_size, eq_repeats)
+        if args.emit:
+            args.emit.write_text(json.dumps(rec))
+        return
+    if args.equal_cores or not args.quick:
+        records = []
+        for cores in (1, 2):
+            with tempfile.TemporaryDirectory() as tmp:
+                path = Path(tmp) / "rec.json"
+                subprocess.run([sys.executable, __file__, "--cores", str(cores), "--emit", str(path)]
+                               + (["--quick"] if args.quick else []), check=True)
+                records.append(json.loads(path.read_text()))
+        equal_cores_report(records, args.quick)
+        if args.equal_cores:
+            return
     if args.speed_runs:
         speed_runs(args.speed_runs)
         return
@@ -351,7 +452,8 @@ def main(argv=None):
     repeats, np_repeats = (2, 1) if quick else (31, 7)
     synth0 = synth_maps(jax.random.PRNGKey(0), size)
     speed_rows = [(label, speed(lv0, repeats, np_repeats)) for label, lv0 in
-                  (("synth_maps (woven)", synth0), ("two directions in every 2x2 block", two_direction_level0(5, size)))]
+                  (("synth_maps (woven)", synth0),
+                   ("two directions in every 2x2 block", two_direction_level0(5, size)))]
 
     print(f"## (a) Rendering error, {n_texels} coarse texels with two distinct directions\n")
     print("| R compared | pairs | EM 2-lobe | moment 1-lobe | mip | EM / mip | EM / moment |")
@@ -376,7 +478,8 @@ def main(argv=None):
 
     print(f"\n## (b) Speed: whole {size[0]}x{size[1]} pyramid ({len(pyramid_sizes(size)) - 1} levels), float32, "
           f"median of {repeats} (JAX) / {np_repeats} (numpy) runs; load average at start {load:.1f}\n")
-    print("| level 0 | JAX compile (s) | JAX wall (s) | numpy wall (s) | speed-up (wall) | JAX CPU (s) | numpy CPU (s) | speed-up (CPU) | rel. diff of renders | two-lobe texels, level 1 | max EM iterations |")
+    print("| level 0 | JAX compile (s) | JAX wall (s) | numpy wall (s) | speed-up (wall) | JAX CPU (s) | numpy CPU (s) "
+          "| speed-up (CPU) | rel. diff of renders | two-lobe texels, level 1 | max EM iterations |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for label, s in speed_rows:
         compile_s = f"{s['compile_s']:.1f}" if s["compile_s"] > 0.5 else "(compiled above)"
@@ -386,8 +489,10 @@ def main(argv=None):
 
     n_problems, n_samples = (5, 500) if quick else (20, 2000)
     rows = sklearn_agreement(n_problems, n_samples)
-    print(f"\n## (c) scikit-learn GaussianMixture(2, 'diag'), same init, {n_problems} problems x {n_samples} samples, float64\n")
-    print("| max rel. log-likelihood diff | max param diff | our iterations (median) | sklearn iterations (median) | all converged |")
+    print(f"\n## (c) scikit-learn GaussianMixture(2, 'diag'), same init, {n_problems} problems x {n_samples} "
+          "samples, float64\n")
+    print("| max rel. log-likelihood diff | max param diff | our iterations (median) | sklearn iterations (median) "
+          "| all converged |")
     print("|---|---|---|---|---|")
     print(f"| {max(r['loglik_rel'] for r in rows):.1e} | {max(r['param'] for r in rows):.1e} | "
           f"{int(np.median([r['iters'] for r in rows]))} | {int(np.median([r['sk_iters'] for r in rows]))} | "
