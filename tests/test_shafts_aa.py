@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import json
 from pathlib import Path
 
 import equinox as eqx
@@ -21,7 +22,9 @@ from mitsuba_scene import block_means, render_mitsuba
 from test_shafts import _scene
 from test_shafts_mitsuba import _BLOCK, _camera_rays, _light_map, _scene_dict
 
+from jaxrender.app.cli.programs import jaxrender_main as main
 from jaxrender.app.scenes import shafts_scene_from_dict
+from jaxrender.io import read_image
 from jaxrender.shafts import METHODS, render, supersample
 
 _RAY_TOL = 1e-12  # float64: the same directions by two formulas
@@ -128,3 +131,43 @@ def test_default_method_with_spp16_matches_mitsuba(two_spot_dir):
     ours1 = np.asarray(fn(scene, 1), dtype=np.float64)
     err1 = _block_rel_rms(ours1, mean)
     assert err1 > err16, (err1, err16)  # one centre sample per (large) pixel aliases the hard edges
+
+
+# -- command line and scene file: --method, --spp, render.spp --------------------------------------
+def _cli_scene(tmp_path: Path, **render_block) -> Path:
+    d = copy.deepcopy(_scene_dict(fog=True))
+    d["spotlights"][0].pop("light_map")
+    d["camera"].update(width=8, height=6)
+    d["render"].update(shadow_map=64, **render_block)
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(d))
+    return path
+
+
+def test_cli_spp_from_flag_and_scene_file(tmp_path):
+    """`--spp 4` and `render.spp: 4` give the same image; the default method is equiangular."""
+    flag, block = tmp_path / "flag.exr", tmp_path / "block.exr"
+    assert main(["shafts", str(_cli_scene(tmp_path)), "--out", str(flag), "--spp", "4", "--samples", "8"]) == 0
+    assert main(["shafts", str(_cli_scene(tmp_path, spp=4)), "--out", str(block), "--samples", "8"]) == 0
+    a, b = read_image(flag), read_image(block)
+    np.testing.assert_array_equal(a, b)
+    scene = shafts_scene_from_dict(_cli_scene_dict(tmp_path), base_dir=tmp_path)
+    expect = np.asarray(render(scene, samples_per_pixel=4, samples=8), dtype=np.float32)
+    np.testing.assert_allclose(a, expect, rtol=1e-5, atol=1e-7)
+
+
+def _cli_scene_dict(tmp_path: Path) -> dict:
+    return json.loads((tmp_path / "scene.json").read_text())
+
+
+@pytest.mark.parametrize("args, block, message", [
+    (["--spp", "3"], {}, "--spp must be a perfect square"),
+    ([], {"spp": 8}, "render.spp: must be a perfect square"),
+    (["--method", "equiangular", "--quantize-bits", "8"], {}, "--quantize-bits"),
+])
+def test_cli_rejects_bad_spp_and_options(tmp_path, capsys, args, block, message):
+    out = tmp_path / "o.png"
+    assert main(["shafts", str(_cli_scene(tmp_path, **block)), "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1, err
+    assert not out.exists()

@@ -176,11 +176,12 @@ def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: 
     return summed * outer(scale, light.intensity)
 
 
-def render_equiangular(scene: ShaftsScene, *, samples: int = 16, shadow_map: int | None = None,
+def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int | None = None,
                        surface_shadows: str = "map", tile: tuple[int, int] = (16, 32), prune: bool = True,
                        bake: int = _BAKE, return_parts: bool = False) -> Float[Array, "H W 3"]:
     """Render `scene` (H, W, 3 linear RGB): surfaces (shadow rays, two-sided Lambert, extinction)
-    plus every light's in-scattering by `equiangular_scattering` with `samples` per pixel and light.
+    plus every light's in-scattering by `equiangular_scattering` with `samples` per pixel and light
+    (24: about 1 % relative RMS on the five-spot stage; 16: about 2.4 %).
 
     shadow_map: shadow-map resolution (default: the scene's `render.shadow_map`). surface_shadows:
     "map" (shadow-map lookups with a slope-scaled bias, `shadow_map_visibility`) or "rays" (exact

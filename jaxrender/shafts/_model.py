@@ -16,9 +16,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ..maths import safe_norm
 from ..geometry import bounding_points, cast_rays
 from ..lights import SpotLight
+from ..maths import safe_norm
 from ._scene import ShaftsScene
 
 S_FLOOR = 1e-6  # smallest light distance used in 1/s^2 (a sample exactly at the light)
@@ -73,7 +73,8 @@ def light_reach(scene: ShaftsScene, light: SpotLight, *, rim: int = 48, grid: in
 
 
 def cone_depth_range(light: SpotLight, reach: Float[ArrayLike, ""], eye: Float[ArrayLike, "3"],
-                     forward: Float[ArrayLike, "3"], *, near: float = 1e-3) -> tuple[Float[Array, ""], Float[Array, ""]]:
+                     forward: Float[ArrayLike, "3"], *, near: float = 1e-3
+                     ) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """View-depth range [r_near, r_far] of the cone cut at `reach` (the convex hull of the apex and
     the disk of radius reach*tan(cutoff) at axial distance reach); r_near >= `near`."""
     apex, centre, radius = light.cone_bound(reach)

@@ -34,7 +34,7 @@ def shadow_ray_visibility(scene: ShaftsScene):
     return visibility
 
 
-def raymarch_scattering(scene: ShaftsScene, dirs: Float[Array, "N 3"], surface_t: Float[Array, "N"], *,
+def raymarch_scattering(scene: ShaftsScene, dirs: Float[Array, "N 3"], surface_t: Float[Array, " N"], *,
                         samples: int = 180, batch_size: int = 256) -> Float[Array, "N 3"]:
     """I_s of eq. 2 for N view rays (unit `dirs` from the camera eye), summed over the lights."""
     eye = scene.camera.eye

@@ -37,6 +37,7 @@ class RenderSettings(eqx.Module):
 
     shadow_map: int = eqx.field(static=True, default=1024)
     table_size: int = eqx.field(static=True, default=256)
+    spp: int = eqx.field(static=True, default=1)  # samples per pixel (k*k grid) the command line renders with
     shadow_bias: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(0.002))
     s_min: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(0.05))
     s_max: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(20.0))
@@ -65,7 +66,8 @@ class ShaftsScene(eqx.Module):
         self.medium = medium
         self.lights = tuple(unstack_spotlights(lights))
         self.spheres = Spheres(jnp.zeros((0, 3)), jnp.zeros((0,)), jnp.zeros((0, 3))) if spheres is None else spheres
-        self.quads = Quads(jnp.zeros((0, 3)), jnp.zeros((0, 3)), jnp.zeros((0, 3)), jnp.zeros((0, 3))) if quads is None else quads
+        no_quads = Quads(jnp.zeros((0, 3)), jnp.zeros((0, 3)), jnp.zeros((0, 3)), jnp.zeros((0, 3)))
+        self.quads = no_quads if quads is None else quads
         self.render = RenderSettings() if render is None else render
         self.source = str(source)
 

@@ -1,19 +1,20 @@
 """`jaxrender shafts SCENE.json --out OUT.exr|.png`: light shafts in fog (paper 000).
 
-A thin layer over `jaxrender.app.scenes.load_shafts_scene`, `jaxrender.shafts.render_planes` and
-`jaxrender.shafts.render_raymarch`.
+A thin layer over `jaxrender.app.scenes.load_shafts_scene` and `jaxrender.shafts.render`
+(methods `equiangular`, the default, `planes` and `raymarch`; `--spp` antialiasing for each).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 import jax
 import numpy as np
 
 from jaxrender.io import InputError, write_image
-from jaxrender.shafts import render_planes, render_raymarch
+from jaxrender.shafts import DEFAULT_METHOD, METHODS, render
 
 from ..scenes import load_shafts_scene
 from .timed import add_time_argument, render_timed
@@ -24,13 +25,20 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="output image: .exr (linear) or .png (tone-mapped)")
     parser.add_argument("--width", type=int, default=None, help="override the scene's image width")
     parser.add_argument("--height", type=int, default=None, help="override the scene's image height")
-    parser.add_argument("--method", choices=("planes", "raymarch"), default="planes",
-                        help="sample planes (the paper's method, default) or the ray-marched reference")
+    parser.add_argument("--method", choices=tuple(METHODS), default=DEFAULT_METHOD,
+                        help="equiangular: fast single scattering, steps of equal angle seen from each light "
+                             "(default); planes: the paper's sample planes; raymarch: the exact reference")
+    parser.add_argument("--spp", type=int, default=None, metavar="N",
+                        help="antialiasing: N samples per PIXEL, a regular k x k sub-pixel grid (N = k*k), box "
+                             "filter; default: the scene's render.spp (1). Not --samples, which counts samples "
+                             "along each view ray")
     parser.add_argument("--planes", type=int, default=30, help="sample planes per light (default 30)")
     parser.add_argument("--subplanes", type=int, default=6, help="sub-sample planes per interval (default 6)")
     parser.add_argument("--quantize-bits", type=int, default=0,
                         help="hardware emulation: bits of tables, maps and frame buffer (0 = float, 8 = paper)")
-    parser.add_argument("--samples", type=int, default=180, help="ray-march samples per ray (default 180)")
+    parser.add_argument("--samples", type=int, default=None,
+                        help="samples along each view ray and light: equiangular (default 24) and raymarch "
+                             "(default 180); see --spp for samples per pixel")
     add_time_argument(parser)
 
 
@@ -38,12 +46,14 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in (".exr", ".png"):
         raise InputError(out, "output must end in .exr or .png")
-    if args.method == "raymarch" and args.quantize_bits:
+    if args.method != "planes" and args.quantize_bits:
         raise InputError(None, "--quantize-bits applies to --method planes only "
-                               "(the ray march is the unquantized reference)")
-    for name in ("planes", "subplanes", "samples"):
-        if getattr(args, name) < 1:
+                               "(the other methods are unquantized)")
+    for name in ("planes", "subplanes", "samples", "spp"):
+        if getattr(args, name) is not None and getattr(args, name) < 1:
             raise InputError(None, f"--{name} must be >= 1")
+    if args.spp is not None and math.isqrt(args.spp) ** 2 != args.spp:
+        raise InputError(None, f"--spp must be a perfect square (1, 4, 9, 16, ...), got {args.spp}")
     if not 0 <= args.quantize_bits <= 16:
         raise InputError(None, "--quantize-bits must be between 0 and 16")
     for name in ("width", "height"):
@@ -53,11 +63,12 @@ def run(args: argparse.Namespace) -> int:
     scene = load_shafts_scene(args.scene)
     if args.width is not None or args.height is not None:
         scene = scene.with_size(args.width, args.height)
+    spp = scene.render.spp if args.spp is None else args.spp
     if args.method == "planes":
-        render = jax.jit(lambda s: render_planes(s, planes=args.planes, subplanes=args.subplanes,
-                                                 quantize_bits=args.quantize_bits))
+        options = dict(planes=args.planes, subplanes=args.subplanes, quantize_bits=args.quantize_bits)
     else:
-        render = jax.jit(lambda s: render_raymarch(s, samples=args.samples))
-    image = render_timed(lambda: jax.block_until_ready(render(scene)), args.time)
+        options = {} if args.samples is None else dict(samples=args.samples)  # the method's default
+    fn = jax.jit(lambda s: render(s, method=args.method, samples_per_pixel=spp, **options))
+    image = render_timed(lambda: jax.block_until_ready(fn(scene)), args.time)
     write_image(out, np.asarray(image, dtype=np.float32))
     return 0

@@ -25,7 +25,7 @@ from jaxrender.shafts import Medium, RenderSettings, ShaftsScene
 
 __all__ = ["load_shafts_scene", "shafts_scene_from_dict", "ShaftsSceneWarning", "RENDER_DEFAULTS"]
 
-RENDER_DEFAULTS = {"shadow_map": 1024, "shadow_bias": 0.002, "table_size": 256, "s_min": 0.05,
+RENDER_DEFAULTS = {"shadow_map": 1024, "shadow_bias": 0.002, "table_size": 256, "spp": 1, "s_min": 0.05,
                    "s_max": 20.0, "t_max": 20.0, "display_white": 1.0}
 
 
@@ -144,12 +144,16 @@ def shafts_scene_from_dict(d: Any, *, base_dir: str | os.PathLike = ".",
     for key in ("shadow_map", "table_size"):
         if key in ren_d:
             settings[key] = r.integer(ren_d[key], f"render.{key}", lo=2)
+    if "spp" in ren_d:  # samples per pixel: a k x k sub-pixel grid (an extension of design.md's format)
+        settings["spp"] = r.integer(ren_d["spp"], "render.spp", lo=1)
+        if math.isqrt(settings["spp"]) ** 2 != settings["spp"]:
+            r.fail("render.spp", f"must be a perfect square (1, 4, 9, 16, ...), got {settings['spp']}")
     for key in ("shadow_bias", "s_min", "s_max", "t_max", "display_white"):
         if key in ren_d:
             settings[key] = r.number(ren_d[key], f"render.{key}", lo=0.0, lo_open=key != "shadow_bias")
     if settings["s_max"] <= settings["s_min"]:
         r.fail("render.s_max", f"must exceed render.s_min ({settings['s_min']:g})")
-    render = RenderSettings(shadow_map=settings["shadow_map"], table_size=settings["table_size"],
+    render = RenderSettings(shadow_map=settings["shadow_map"], table_size=settings["table_size"], spp=settings["spp"],
                             **{k: jnp.asarray(settings[k], dtype=float)
                                for k in ("shadow_bias", "s_min", "s_max", "t_max", "display_white")})
 
