@@ -407,7 +407,7 @@ def equal_cores_report(records: list[dict], quick: bool) -> None:
                      f"({worst:.1f}-{best:.1f}), {cpu:.1f}x CPU")
         ok = ok and med >= 10
     write_results("em_pyramid", [dict(
-        issue="5 EM pyramid", target=">= 10x batched numpy over a 256x256 pyramid (equal cores)",
+        issue="5 EM pyramid", target=">= 10x batched numpy over a 256x256 pyramid",
         measured=f"woven {records[0]['size'][0]}^2: " + "; ".join(parts), status="met" if ok else "missed",
         notes="1 core: both pinned to core 0, one thread each; 2 cores: JAX's pools vs numpy in 2 processes")],
         quick=quick)
