@@ -10,7 +10,10 @@ What is timed (compile time apart, `block_until_ready`, median of repeats):
   at two mip levels x two lobes and every floor pixel, visible flames, compositing);
 - peer (same run): `frame + static`, i.e. a frame that recomputes the static part (no caching
   of I_static and shadows across the sequence), and the ratio of the two;
-- `animation`: 20 consecutive frames (the default sequence), wall time, compiled.
+- `animation`: 20 consecutive frames (the default sequence), wall time, compiled;
+- issue 16: the per-frame time with the per-sequence part amortised over the 20 frames
+  (frame + static / 20) and with it alone each frame (frame + static), and which of the two meets
+  the 1 s target; headline rows to benchmarks/results/noh_frame.json (not with --quick).
 Process CPU time per frame is printed too: on a shared machine it is the stable figure (an idle
 2-core machine runs a frame in about CPU time / 2 when both cores are busy).
 
@@ -50,11 +53,12 @@ def main() -> None:
     t = time.perf_counter()
     prep = jax.block_until_ready(noh.prepare_noh(scene, key=jax.random.key(1)))
     static_compile_s = time.perf_counter() - t
-    static = []
+    static, static_cpu = [], []
     for i in range(max(3, repeats // 2)):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         jax.block_until_ready(noh.prepare_noh(scene, key=jax.random.key(1)))
         static.append(time.perf_counter() - t)
+        static_cpu.append(time.process_time() - c)
 
     frame = noh.noh_frame_jit
     t = time.perf_counter()
@@ -77,7 +81,8 @@ def main() -> None:
 
     out = Path(__file__).resolve().parent / "figures" / ("noh_frame_quick.png" if args.quick else "noh_frame.png")
     out.parent.mkdir(exist_ok=True)
-    lum = np.asarray(last).reshape(-1, 3)[np.asarray(prep.garment.index)] @ np.asarray([0.2126, 0.7152, 0.0722], np.float32)
+    lum = (np.asarray(last).reshape(-1, 3)[np.asarray(prep.garment.index)]
+           @ np.asarray([0.2126, 0.7152, 0.0722], np.float32))
     write_png(out, noh.tonemap_frames(np.asarray(last)[None], exposure=0.3 / float(np.percentile(lum, 90)))[0])
 
     frame_med, static_med = statistics.median(frames), statistics.median(static)
@@ -96,6 +101,9 @@ def main() -> None:
         ("ratio peer / frame", f"{(frame_med + static_med) / frame_med:.2f}x"),
         ("20 frames of animation (compiled) s", f"{animation_s:.2f}"),
         ("20 frames incl. static part s", f"{animation_s + static_med:.2f}"),
+        ("frame with the static part amortised over 20 frames (frame + static / 20) s",
+         f"{frame_med + static_med / 20:.3f}"),
+        ("static part (per sequence), median process CPU s", f"{statistics.median(static_cpu):.3f}"),
     ]
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"# noh_frame ({'quick' if args.quick else 'full'}) on {platform.processor() or platform.machine()}, "
@@ -107,8 +115,28 @@ def main() -> None:
     ok_frame = frame_med <= 1.0
     ok_anim = animation_s <= 20.0
     scope = "" if not args.quick else " (quick size: the targets are for 720x480)"
-    print(f"\ntargets{scope}: frame <= 1 s: {'met' if ok_frame else 'MISSED'} ({frame_med:.3f} s); "
-          f"20 frames <= 20 s: {'met' if ok_anim else 'MISSED'} ({animation_s:.2f} s)")
+    amortised, alone = frame_med + static_med / 20, frame_med + static_med
+    print(f"\ntargets{scope}: frame <= 1 s: {'met' if ok_frame else 'MISSED'} ({frame_med:.3f} s static cached; "
+          f"{amortised:.3f} s with the static part amortised over 20 frames: {'met' if amortised <= 1 else 'MISSED'}; "
+          f"{alone:.3f} s recomputing it every frame: {'met' if alone <= 1 else 'MISSED'}); "
+          f"20 frames <= 20 s: {'met' if ok_anim else 'MISSED'} ({animation_s:.2f} s, "
+          f"{animation_s + static_med:.2f} s with the static part)")
+    from _results import write_results
+
+    cpu_f, cpu_s = statistics.median(cpu), statistics.median(static_cpu)
+    verdict = "met" if amortised <= 1 else "missed"
+    write_results("noh_frame", [
+        dict(issue="5 Noh", target="720x480 frame, 20 env + 20 fire samples, 2 lobes, <= 1 s",
+             measured=f"{frame_med:.3f} s static cached (CPU {cpu_f:.3f} s); {amortised:.3f} s with the per-sequence "
+                      f"part amortised over 20 frames; {alone:.3f} s recomputing it each frame (CPU "
+                      f"{cpu_f + cpu_s:.3f} s); median of {repeats}, load {load:.1f}",
+             status=f"{verdict} (amortised); {'met' if alone <= 1 else 'missed'} (per-sequence part every frame)",
+             notes="per-sequence part: G-buffer, floor, 4 depth maps + PCSS, environment term"),
+        dict(issue="5 Noh", target="20 frames <= 20 s",
+             measured=f"{animation_s:.2f} s, {animation_s + static_med:.2f} s with the per-sequence part; "
+                      f"load {load:.1f}",
+             status="met" if animation_s + static_med <= 20 else ("met (frames only)" if ok_anim else "missed"))],
+        quick=args.quick)
 
 
 if __name__ == "__main__":
