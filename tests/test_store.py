@@ -4,6 +4,7 @@ pixel problems found during the pass, and the light block sized from the memory 
 
 Subprocesses share a persistent JAX compilation cache (as tests/test_fit_driver.py)."""
 
+import contextlib
 import json
 import os
 import subprocess
@@ -64,6 +65,23 @@ def _env(root: Path) -> dict:
     return env
 
 
+@contextlib.contextmanager
+def _fit_mode(root: Path):
+    """float32 fits as `fitting fit` runs them, compiled into the persistent cache the subprocesses
+    of this module load (one compilation of the tile program for the whole module)."""
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
+             "jax_persistent_cache_min_entry_size_bytes")
+    saved = {name: getattr(jax.config, name) for name in names}
+    for name, value in zip(names, (str(root / "jax-cache"), 0.0, 0), strict=True):
+        jax.config.update(name, value)
+    try:
+        with jax.enable_x64(False):
+            yield
+    finally:
+        for name, value in saved.items():
+            jax.config.update(name, value)
+
+
 def _arrays(store_dir):
     import zarr
 
@@ -100,7 +118,7 @@ def test_float16_store_is_the_rounded_merge(root, capture, merged):
 
 
 def test_fit_from_float32_store_is_bit_identical(root, store32, merged):
-    with jax.enable_x64(False):  # the fit of float32 observations, as `fitting fit` runs it
+    with _fit_mode(root):  # the fit of float32 observations, as `fitting fit` runs it
         fit_observations(merged, root / "btf_mem", chunk=CHUNK, pyramid=False, progress=False)
         fit_store(store32, root / "btf_store", chunk=CHUNK, pyramid=False, progress=False)
     manifest, got = read_btf(root / "btf_store")
@@ -158,14 +176,14 @@ fit_store(sys.argv[1], sys.argv[2], chunk={chunk}, pyramid=False, progress=False
 def test_killed_fit_resumes_bit_identical(root, store32):
     ref_dir = root / "btf_store"  # test_fit_from_float32_store_is_bit_identical's, or made here
     if not (ref_dir / "btf.json").is_file():
-        with jax.enable_x64(False):
+        with _fit_mode(root):
             fit_store(store32, ref_dir, chunk=CHUNK, pyramid=False, progress=False)
     out = root / "btf_store_killed"
     proc = subprocess.run([sys.executable, "-c", textwrap.dedent(KILL_FIT.format(chunk=CHUNK)), str(store32),
                            str(out)], env=_env(root), capture_output=True, timeout=600)
     assert proc.returncode == -9, proc.stderr.decode()
     assert len(list((out / ".partial").glob("chunk_*.npz"))) == 3 and not (out / "btf.json").exists()
-    with jax.enable_x64(False):
+    with _fit_mode(root):
         fit_store(store32, out, chunk=CHUNK, pyramid=False, progress=False)
     _, got = read_btf(out)
     _, ref = read_btf(ref_dir)
