@@ -60,9 +60,9 @@ def write_exr(path: str | os.PathLike, image: np.ndarray | dict[str, np.ndarray]
 
 
 def read_image(path: str | os.PathLike, *, srgb: bool = True) -> np.ndarray:
-    """A PNG or EXR image as linear float32 `H W C` (C = 1, 3 or 4).
+    """A PNG, TIFF, JPEG or EXR image as linear float32 `H W C` (C = 1, 3 or 4).
 
-    PNG values are scaled by the maximum of their integer type and, with `srgb`,
+    PNG, TIFF and JPEG values (8 or 16 bits) are scaled by the maximum of their integer type and, with `srgb`,
     decoded from sRGB (alpha stays linear). EXR files are linear: R, G, B (and A) when present,
     else Y, else every channel in name order.
     """
@@ -80,7 +80,7 @@ def read_image(path: str | os.PathLike, *, srgb: bool = True) -> np.ndarray:
             names = sorted(channels)
         return np.stack([channels[n] for n in names], axis=-1)
     if suffix not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
-        raise InputError(path, f"unsupported image type {suffix!r} (use PNG or EXR)")
+        raise InputError(path, f"unsupported image type {suffix!r} (use PNG, TIFF, JPEG or EXR)")
     try:
         raw = _decode_png(path) if suffix == ".png" else _decode_other(path)
     except Exception as error:
