@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
 from ._atomic import atomic_path
 from ._color import linear_to_srgb, srgb_to_linear, tonemap
-from ..errors import InputError
 
 _EXR_RGB = ("R", "G", "B")
 
