@@ -21,7 +21,7 @@ FIG = Path(__file__).parent / "figures"
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="120x80, 16x16 dunes, 16 texels per quad, dune + ripple shadows only")
+    parser.add_argument("--quick", action="store_true", help="120x80, 16x16 dunes, 16 texels, all shadows")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     if args.quick:
