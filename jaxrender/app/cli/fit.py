@@ -4,7 +4,6 @@ a Dask cluster (`--scheduler`, `--dask-workers`)."""
 
 from __future__ import annotations
 
-import argparse
 import json
 
 from fitting import fit_capture
@@ -12,25 +11,7 @@ from fitting.ingest import DEFAULT_MEMORY_GB
 from fitting.lm import DEFAULT_MAX_STEPS
 from fitting.store import DEFAULT_STORE_DTYPE, STORE_DTYPES
 
-
-def _positive_int(value: str) -> int:
-    try:
-        n = int(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{value!r} is not an integer") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError("must be >= 1")
-    return n
-
-
-def _positive_float(value: str) -> float:
-    try:
-        x = float(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{value!r} is not a number") from None
-    if not x > 0:
-        raise argparse.ArgumentTypeError("must be > 0")
-    return x
+from .arguments import positive_float, positive_int
 
 
 def configure(parser):
@@ -40,9 +21,9 @@ def configure(parser):
                         help="output BTF directory (rerun on the same one to resume an interrupted fit)")
     parser.add_argument("--solver", choices=("optimistix", "jaxopt", "native"), default="optimistix",
                         help="Levenberg-Marquardt backend (default optimistix; native = fitting.lm's own, faster loop)")
-    parser.add_argument("--chunk", type=_positive_int, default=4096,
+    parser.add_argument("--chunk", type=positive_int, default=4096,
                         help="texels per chunk: bounds memory, one checkpoint each (default 4096)")
-    parser.add_argument("--max-steps", type=_positive_int, default=None,
+    parser.add_argument("--max-steps", type=positive_int, default=None,
                         help="Levenberg-Marquardt steps per texel (default 40)")
     parser.add_argument("--model", choices=("reciprocal", "paper"), default="reciprocal",
                         help="model form (default reciprocal; paper = eq. 1 as printed)")
@@ -52,14 +33,14 @@ def configure(parser):
     parser.add_argument("--store-dtype", choices=STORE_DTYPES, default=DEFAULT_STORE_DTYPE,
                         help="dtype of the stored observations when ingesting a capture "
                              f"(default {DEFAULT_STORE_DTYPE})")
-    parser.add_argument("--memory-gb", type=_positive_float, default=DEFAULT_MEMORY_GB,
+    parser.add_argument("--memory-gb", type=positive_float, default=DEFAULT_MEMORY_GB,
                         help=f"memory budget of the ingest's light block (default {DEFAULT_MEMORY_GB})")
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--scheduler", metavar="ADDRESS",
                        help="fit the tiles on the Dask cluster at ADDRESS (tcp://HOST:PORT; started with "
                             "`dask scheduler` and `dask worker ADDRESS --nthreads 1`; store and BTF_DIR on a "
                             "shared path)")
-    where.add_argument("--dask-workers", type=_positive_int, metavar="N",
+    where.add_argument("--dask-workers", type=positive_int, metavar="N",
                        help="fit the tiles on a local Dask cluster of N worker processes")
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 from fitting.ingest import DEFAULT_MEMORY_GB, DEFAULT_TILE, ingest_capture
 from fitting.store import DEFAULT_STORE_DTYPE, STORE_DTYPES, open_store
 
-from .fit import _positive_float, _positive_int
+from .arguments import positive_float, positive_int
 
 
 def configure(parser):
@@ -16,9 +16,9 @@ def configure(parser):
     parser.add_argument("--dtype", choices=STORE_DTYPES, default=DEFAULT_STORE_DTYPE,
                         help=f"stored ratio dtype (default {DEFAULT_STORE_DTYPE}; float32: fits bit-identical to "
                              "the in-memory merge)")
-    parser.add_argument("--memory-gb", type=_positive_float, default=DEFAULT_MEMORY_GB,
+    parser.add_argument("--memory-gb", type=positive_float, default=DEFAULT_MEMORY_GB,
                         help=f"memory budget of one block of lights (default {DEFAULT_MEMORY_GB})")
-    parser.add_argument("--tile", type=_positive_int, default=DEFAULT_TILE,
+    parser.add_argument("--tile", type=positive_int, default=DEFAULT_TILE,
                         help=f"texels per chunk (default {DEFAULT_TILE}: the fit's default --chunk)")
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from fitting.manifest import write_manifest
 
-from .fit import _positive_float
+from .arguments import positive_float
 
 
 def _float(value: str) -> float:
@@ -22,7 +22,7 @@ def configure(parser):
     parser.add_argument("--out", required=True, metavar="CAPTURE_DIR/capture.json", help="manifest to write")
     parser.add_argument("--response", choices=("linear", "srgb"), default="linear",
                         help="how integer codes are linearised (default linear; camera JPEGs: srgb)")
-    parser.add_argument("--white-reflectance", type=_positive_float, nargs="+", default=[1.0], metavar="R",
+    parser.add_argument("--white-reflectance", type=positive_float, nargs="+", default=[1.0], metavar="R",
                         help="the white board's reflectance: one number or R G B (default 1.0)")
     parser.add_argument("--view", type=_float, nargs=2, default=(0.0, 0.0), metavar=("THETA", "PHI"),
                         help="camera direction in degrees (default 0 0)")
