@@ -7,11 +7,11 @@ deposit, np.roll fluxes; float64), numba loops on one thread and numba with its 
 every core this process may use (`prange`; float64). 256x256, paper parameters. Also the gather
 (sum of rolls) formulation that sims._transport does not use, for the record.
 
-    python benchmarks/ripples_speed.py [--quick] [--size N] [--steps S] [--repeats R]
-    taskset -c 0 python benchmarks/ripples_speed.py     # every implementation on one core
+    python benchmarks/ripples_speed.py [--quick] [--size N] [--steps S] [--repeats R] [--pin-core C]
 
 Cores: XLA may use every core the process may use, as may the parallel numba peer; numpy and the
-sequential numba peer use one. Run under `taskset -c 0` for one core on every side. Each repeat
+sequential numba peer use one. `--pin-core 0` (like `taskset -c 0`) puts every implementation on
+core 0: equal cores on every side. Each repeat
 times every implementation once, interleaved, so all see the same machine load; wall and process
 CPU time per step, min / median / max over the repeats; compile time apart. The fields are first
 grown 500 steps so the hop range (~1-25 cells) is that of developed ripples.
@@ -53,7 +53,11 @@ def main(argv=None) -> int:
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--steps", type=int, default=200, help="steps per timed run of the compiled versions")
     parser.add_argument("--repeats", type=int, default=9)
+    parser.add_argument("--pin-core", type=int, default=None, metavar="C",
+                        help="run everything on this one core (equal cores for every implementation)")
     args = parser.parse_args(argv)
+    if args.pin_core is not None:  # before jax and numba start their thread pools
+        os.sched_setaffinity(0, {args.pin_core})
     if args.quick:
         args.size, args.steps, args.repeats = 64, 20, 2
 
@@ -178,16 +182,22 @@ def main(argv=None) -> int:
     print(f"target >= {TARGET:.0f}x numpy: {verdict} (wall {rw[1]:.1f}x, CPU {rc[1]:.1f}x)")
 
     like_w, like_c = lines[(strongest, "ours64")]
+    cores_note = (f"every implementation pinned to core {args.pin_core}" if args.pin_core is not None
+                  else f"{cores} cores: XLA may use both, numpy and 1-thread numba use one")
     write_results("ripples_speed", [
         dict(issue="3 desert", target="ripple automaton >= 20x numpy (256x256)",
              measured=f"{rw[1]:.1f}x wall ({rw[0]:.1f}-{rw[2]:.1f}), {rc[1]:.1f}x CPU, ours float32 vs numpy "
                       f"float64, {cores} core(s)",
-             status=verdict, figures={"wall_ratio_median": rw[1], "cpu_ratio_median": rc[1]}),
+             status=verdict, figures={"wall_ratio_median": rw[1], "cpu_ratio_median": rc[1]},
+             notes=f"{cores_note}; both sides conserve sand exactly (issue 15); before that change, on the quiet "
+                   "machine: 7.0x wall, 5.3x CPU"),
         dict(issue="16 peers", target="ripple automaton vs numba, like with like (float64)",
              measured=f"{like_w[1]:.2f}x wall ({like_w[0]:.2f}-{like_w[2]:.2f}), {like_c[1]:.2f}x CPU vs numba on "
                       f"{threads} thread(s) (the faster numba here); {cores} core(s) available to both",
              status="ahead" if like_w[1] > 1 else "behind",
-             figures={"wall_ratio_median": like_w[1], "cpu_ratio_median": like_c[1]}),
+             figures={"wall_ratio_median": like_w[1], "cpu_ratio_median": like_c[1]},
+             notes=f"{cores_note}; the same update on both sides (bit-identical results); before exact "
+                   "conservation: numba 0.587 ms / step, ours float64 0.330 (1.8x, quiet machine)"),
     ], quick=args.quick)
     return 0
 
