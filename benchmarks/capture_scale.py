@@ -149,6 +149,42 @@ fit_observations(obs, sys.argv[2], chunk=4096, pyramid=False, progress=False)
 """
 
 
+RATE = """
+import json, sys, time
+import numpy as np
+from fitting import load_capture, merge_capture, open_store
+from fitting.fit import fit_maps
+from fitting.tiles import fit_store_maps
+obs = merge_capture(load_capture(sys.argv[1]), progress=False)
+store = open_store(sys.argv[2])
+fit_maps(obs, chunk=4096, progress=False)  # compile (or load) the tile program once
+out = {"in-memory": [], "store": []}
+for rep, path in enumerate(["in-memory", "store", "store", "in-memory", "in-memory", "store"]):
+    t0, c0 = time.perf_counter(), time.process_time()
+    if path == "store":
+        maps = fit_store_maps(store, partial_dir=sys.argv[3] + f"/partial{rep}", progress=False)
+    else:
+        maps = fit_maps(obs, chunk=4096, progress=False)
+    out[path].append([time.perf_counter() - t0, time.process_time() - c0])
+    out.setdefault("maps_" + path, maps["rho_d"])
+same = np.array_equal(out.pop("maps_store"), out.pop("maps_in-memory"))
+print(json.dumps({**out, "same_maps": bool(same)}))
+"""
+
+
+def rate_compare(cap: Path, store32: Path, work: Path, env: dict) -> dict:
+    """Fit rate of the store path vs the in-memory path in one process, alternating (A B B A A B),
+    compile done first: wall and CPU seconds of each fit of every texel."""
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    load = os.getloadavg()
+    proc = subprocess.run([sys.executable, "-c", RATE, str(cap), str(store32), str(work)], env=env,
+                          capture_output=True, text=True, check=True)
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    out["load_before"], out["load_after"] = load, os.getloadavg()
+    return out
+
+
 def _btf(path: Path):
     from jaxrender.io import read_btf
 
@@ -197,6 +233,8 @@ def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, da
     steps.append(measure(f"{tag} fit store (+pyramid)", [*FITTING, "fit", str(store16), "--out", str(btf16)], env))
     manifest, level16 = _btf(btf16)
     out["fit_seconds"] = manifest["fit"]["seconds"]
+    out["fit_cpu_seconds"] = manifest["fit"].get("cpu_seconds")
+    out["ingest_step"], out["fit_step"] = steps[-2]["step"], steps[-1]["step"]
     out["texels_per_s"] = size * size / manifest["fit"]["seconds"]
     truth = np.load(cap / "truth.npz")
     out["float16_vs_truth"] = compare_truth(level16, truth)
@@ -217,6 +255,12 @@ def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, da
         out["float32_store_bit_identical"] = all(np.array_equal(level32[k], levelmem[k]) for k in levelmem)
         out["float16_vs_float32"] = compare_maps(level16, level32)
         out["float32_vs_truth"] = compare_truth(level32, truth)
+        out["rate"] = rate_compare(cap, store32, root / f"rate_{size}", env)
+        med = {k: np.median(np.asarray(out["rate"][k]), axis=0) for k in ("in-memory", "store")}
+        out["store_over_inmemory_wall"] = float(med["store"][0] / med["in-memory"][0])
+        out["store_over_inmemory_cpu"] = float(med["store"][1] / med["in-memory"][1])
+        print(f"  rate, same process alternating: store/in-memory time {out['store_over_inmemory_wall']:.3f} wall, "
+              f"{out['store_over_inmemory_cpu']:.3f} CPU (medians of 3); runs {out['rate']}", flush=True)
         print(f"  store vs in-memory fit: {m32['fit']['seconds']:.1f} s vs {mmem['fit']['seconds']:.1f} s "
               f"(rate ratio {out['store_vs_inmemory_rate']:.3f}); bit-identical: {out['float32_store_bit_identical']}")
         print(f"  float16 vs float32 store: {out['float16_vs_float32']}")
@@ -231,6 +275,35 @@ def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, da
             out[f"dask{n}_same_maps"] = all(np.array_equal(leveld[k], level16[k]) for k in leveld if k in level16)
             print(f"  dask x{n}: fit {md['fit']['seconds']:.1f} s, "
                   f"same maps as one process: {out[f'dask{n}_same_maps']}")
+    return out
+
+
+PAPER = {"texels": 3888 * 2529, "lights": 2160, "exposures": 6}  # paper 004's capture
+
+
+def paper_projection(r: dict, steps: list) -> dict:
+    """The paper's capture from the figures measured at one size, scaled by the work:
+    ingest by image pixels read, the fit by texel x light (its cost is a sum over lights)."""
+    by_name = {s["step"]: s for s in steps}
+    ingest, fit = by_name[r["ingest_step"]], by_name[r["fit_step"]]
+    measured_pixels = (r["lights"] + 1) * len(EXPOSURES) * r["size"] ** 2
+    paper_pixels = (PAPER["lights"] + 1) * PAPER["exposures"] * PAPER["texels"]
+    fit_cpu_per = r["fit_cpu_seconds"] / (r["size"] ** 2 * r["lights"])
+    pyramid_cpu_per = max(fit["cpu_s"] - r["fit_cpu_seconds"], 0.0) / r["size"] ** 2  # + startup: pessimistic
+    stored_per = r["store16_bytes"] / (r["size"] ** 2 * r["lights"])
+    out = {
+        "images": (PAPER["lights"] + 1) * PAPER["exposures"],
+        "decoded_bytes_8bit": paper_pixels * 3, "decoded_bytes_16bit": paper_pixels * 6,
+        "store_bytes_raw": PAPER["texels"] * PAPER["lights"] * 7,
+        "store_bytes_compressed": PAPER["texels"] * PAPER["lights"] * stored_per,
+        "ingest_cpu_h": ingest["cpu_s"] / measured_pixels * paper_pixels / 3600,
+        "ingest_wall_h_as_measured": ingest["wall_s"] / measured_pixels * paper_pixels / 3600,
+        "fit_cpu_h": fit_cpu_per * PAPER["texels"] * PAPER["lights"] / 3600,
+        "pyramid_cpu_h": pyramid_cpu_per * PAPER["texels"] / 3600,
+        "maps_bytes_level0": PAPER["texels"] * 100,
+    }
+    out["fit_wall_h_one_2core_machine"] = out["fit_cpu_h"] / 2
+    out["fit_wall_h_on_workers"] = {n: out["fit_cpu_h"] / (2 * n) for n in (1, 4, 16, 64)}
     return out
 
 
@@ -256,6 +329,10 @@ def main() -> None:
         small = size <= 256
         results.append(run_size(args.root, size, n_lights, env, speed=small, dask=small, steps=steps))
     report = {"sizes": results, "steps": steps, "load_end": os.getloadavg()}
+    big = max(results, key=lambda r: r["size"])
+    if big.get("fit_cpu_seconds"):
+        report["paper_projection"] = paper_projection(big, steps)
+        print("paper's capture, projected from", big["size"], json.dumps(report["paper_projection"], indent=1))
     (args.root / "capture_scale.json").write_text(json.dumps(report, indent=1))
     print(json.dumps(results, indent=1))
     rows = []
@@ -266,6 +343,8 @@ def main() -> None:
         rows.append(dict(issue="12 capture scale", target=target,
                          measured=f"peak RSS {max(mem, procs):.2f} GB; fit {r['texels_per_s']:.0f} texels/s",
                          status="met" if max(mem, procs) <= 3 else "missed", figures=r))
+    if "paper_projection" in report:
+        rows[0]["figures"] = {**rows[0]["figures"], "paper_projection": report["paper_projection"]}
     write_results("capture_scale", rows, quick=args.quick)
 
 
