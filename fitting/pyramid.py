@@ -1,7 +1,8 @@
 """The EM multi-resolution pyramid of a BTF directory (paper 004, section 3.2).
 
 Level l+1 (ceil-half size, odd sizes edge-padded as `jaxrender.textures.downsample2`) is built
-from level l texel by texel with `fitting.em.em_downsample`: up to two anisotropic lobes per
+from level l texel by texel with `fitting.em.em_downsample` (a large level 0 in bands of rows,
+`banded_downsample`, so memory does not grow with it): up to two anisotropic lobes per
 texel, `rho_d` averaged. Levels are written through `jaxrender.io.write_btf_levels`, which keeps
 level 0, writes `level_01.exr`, ... and rewrites `btf.json` last.
 """
@@ -22,7 +23,9 @@ from jaxrender.io import InputError, read_btf, write_btf_levels
 
 from .em import DEFAULT_ITERATIONS, DEFAULT_ORDER, ONE_LOBE_TOLERANCE, TWO_LOBE_GAIN, em_downsample
 
-__all__ = ["build_pyramid", "pyramid_levels", "pyramid_sizes"]
+__all__ = ["build_pyramid", "pyramid_levels", "pyramid_sizes", "banded_downsample", "BAND_TEXELS"]
+
+BAND_TEXELS = 65536  # output texels per band of a large one-lobe level (16 EM chunks of 4096)
 
 
 def pyramid_sizes(size: tuple[int, int], *, levels: int | None = None) -> list[tuple[int, int]]:
@@ -33,6 +36,34 @@ def pyramid_sizes(size: tuple[int, int], *, levels: int | None = None) -> list[t
     return sizes
 
 
+def banded_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: int = DEFAULT_ITERATIONS,
+                      chunk: int = 4096, band_texels: int = BAND_TEXELS):
+    """`em_downsample` of a large one-lobe level (a fit's level 0) in bands of output rows: the
+    EM's buffers then grow with a band, not with the level (measured: ~0.7 kB per level-0 texel
+    in one piece). Each band holds whole EM chunks of `chunk` texels at the same flat positions as
+    in one piece (bands start at multiples of `chunk` output texels; the last band takes the rest),
+    so every texel meets the same kernel call: the level is bit-identical to `em_downsample`'s.
+    Levels with a second lobe somewhere, small levels, and widths that allow no such bands are
+    downsampled in one piece (`em_downsample` picks its kernel from the whole level)."""
+    h, w = level.weight.shape
+    hh, ww = -(-h // 2), -(-w // 2)
+    step = chunk // math.gcd(chunk, ww)   # output rows of a whole number of chunks
+    rows = max(step, band_texels // ww // step * step)
+    if hh < 2 * rows or bool(jnp.any(level.weight)):
+        return em_downsample(level, order=order, iterations=iterations, chunk=chunk)
+    starts = list(range(0, hh - rows + 1, rows))   # the last band runs to the end (rows .. 2 rows - 1)
+    outs, infos = [], []
+    for i, a in enumerate(starts):
+        b = hh if i == len(starts) - 1 else a + rows
+        band = jax.tree.map(lambda x: x[2 * a:min(2 * b, h)], level)
+        out, info = em_downsample(band, order=order, iterations=iterations, chunk=chunk)
+        jax.block_until_ready((out, info))   # one band's buffers at a time
+        outs.append(out)
+        infos.append(info)
+    return (jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=0), *outs),
+            jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=0), *infos))
+
+
 def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = DEFAULT_ORDER,
                    iterations: int = DEFAULT_ITERATIONS, progress: Callable[[int], object] | None = None,
                    ) -> tuple[list[BTFTexel], list[dict]]:
@@ -41,7 +72,7 @@ def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = 
     out, infos = [], []
     current = level0
     for _ in range(1, count):  # a handful of levels: each one is a vmapped kernel call
-        current, info = em_downsample(current, order=order, iterations=iterations)
+        current, info = banded_downsample(current, order=order, iterations=iterations)
         out.append(current)
         infos.append(info)
         if progress is not None:
@@ -58,7 +89,8 @@ def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = 
 @jax.jit
 def _level_summary(infos):
     """Per level: fraction of two-lobe texels, most EM iterations, fraction converged (`L 3`)."""
-    return jnp.stack([jnp.stack([jnp.mean(info.two_lobes.astype(jnp.float32)), jnp.max(info.iterations).astype(jnp.float32),
+    return jnp.stack([jnp.stack([jnp.mean(info.two_lobes.astype(jnp.float32)),
+                                 jnp.max(info.iterations).astype(jnp.float32),
                                  jnp.mean(info.converged.astype(jnp.float32))]) for info in infos])
 
 
