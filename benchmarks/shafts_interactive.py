@@ -1,0 +1,282 @@
+"""Light shafts at interactive rates (issue 13): the equiangular method against the ray march and
+the sample planes, each at settings around 2 % error, whole frames (shadow maps and surfaces
+included), float32, compile time apart.
+
+    python benchmarks/shafts_interactive.py [--quick] [--size 720x480] [--ref-samples 256]
+
+Scenes: "spot" = examples/scenes/spot_sphere.json with the polka-dot light map dots.png (one
+textured spot, a sphere, a floor); "stage" = the gallery's five-spot stage (two light maps).
+Error: relative RMS of the in-scattered light (design.md) against a converged ray march
+(`--ref-samples`, shadow rays). Times: min / median / max wall and median CPU seconds (this
+process, all threads) of `--repeats` frames; the machine is shared: the load average is printed.
+Outputs: a table (stdout and benchmarks/results/shafts_interactive.json), the error-vs-time plot
+benchmarks/figures/shafts_interactive.png, and renders benchmarks/figures/shafts_interactive_*.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(HERE))
+
+from _results import write_results  # noqa: E402
+
+from jaxrender.app.scenes import load_stage_scene, shafts_scene_from_dict  # noqa: E402
+from jaxrender.geometry import cast_rays, hit_point  # noqa: E402
+from jaxrender.io import write_image  # noqa: E402
+from jaxrender.shadows import render_shadow_map  # noqa: E402
+from jaxrender.shafts import render_equiangular, render_planes, render_raymarch  # noqa: E402
+from jaxrender.shafts._equiangular import shadow_map_visibility  # noqa: E402
+from jaxrender.shafts._model import FAR, cone_intervals, light_reach, surface_term  # noqa: E402
+
+TARGET = 0.02
+FIGURES = HERE / "figures"
+
+
+def spot_scene(width, height):
+    d = json.loads((ROOT / "examples" / "scenes" / "spot_sphere.json").read_text())
+    d["spotlights"][0]["light_map"] = "dots.png"
+    return shafts_scene_from_dict(d, base_dir=ROOT / "examples" / "scenes").with_size(width, height)
+
+
+def frame_times(fn, scene, repeats):
+    """(result, compile s, wall times, median CPU s): the first call apart."""
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn(scene))
+    compile_s = time.perf_counter() - t0
+    wall, cpu = [], []
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        jax.block_until_ready(fn(scene))
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return out, compile_s, wall, statistics.median(cpu)
+
+
+def rel(x, ref):
+    return float(np.linalg.norm(np.asarray(x, np.float64) - ref) / np.linalg.norm(ref))
+
+
+def method_fn(method, setting):
+    """A jitted frame returning (image, in-scattered part)."""
+    if method == "equiangular":
+        n, sm = setting
+        body = lambda s: render_equiangular(s, samples=n, shadow_map=sm, return_parts=True)  # noqa: E731
+    elif method == "raymarch":
+        body = lambda s: render_raymarch(s, samples=setting, return_parts=True)  # noqa: E731
+    else:
+        n, m, gpp = setting
+        body = lambda s: render_planes(s, planes=n, subplanes=m, g_per_pixel=gpp, tables=not gpp,  # noqa: E731
+                                       return_parts=True)
+
+    def frame(s):
+        image, (surface, fog) = body(s)
+        return image, (sum(fog) if isinstance(fog, list) else fog)
+
+    return jax.jit(frame)
+
+
+def label(method, setting):
+    if method == "equiangular":
+        n, sm = setting
+        return f"{n} samples" + (", scene's shadow map (1024)" if sm is None else f", shadow map {sm}")
+    if method == "raymarch":
+        return f"{setting} samples"
+    n, m, gpp = setting
+    return f"{n}x{m}" + (", g per pixel" if gpp else ", mesh 15x10 + tables")
+
+
+def sweep(name, scene, ref, settings, repeats):
+    rows = []
+    for method, setting in settings:
+        fn = method_fn(method, setting)
+        (image, fog), c, wall, cpu = frame_times(fn, scene, repeats)
+        err = rel(fog, ref)
+        rows.append(dict(scene=name, method=method, setting=label(method, setting), err=err, compile_s=c,
+                         min_s=min(wall), median_s=statistics.median(wall), max_s=max(wall), cpu_s=cpu,
+                         image=np.asarray(image)))
+        print(f"  {name:5s} {method:11s} {label(method, setting):28s} err {err:.4f}  compile {c:5.1f} s  "
+              f"wall {min(wall):.3f}/{statistics.median(wall):.3f}/{max(wall):.3f} s  cpu {cpu:.3f} s  "
+              f"load {os.getloadavg()[0]:.1f}", flush=True)
+    return rows
+
+
+def fixed_part_profile(scene, repeats, shadow_map=512):
+    """Median wall and CPU seconds of the pieces of an equiangular frame (its default 512 maps)."""
+    res = shadow_map
+
+    def maps(s):
+        return tuple(render_shadow_map(light, s.prims, resolution=res) for light in s.lights)
+
+    def primary(s):
+        d = s.camera.primary_rays()
+        return d, cast_rays(s.camera.eye, d, s.prims)
+
+    def surface(s):
+        d, (t, n, a) = primary(s)
+        return surface_term(s, hit_point(s.camera.eye, d, t, far=FAR), n, a, t, shadow_map_visibility(s, maps(s)))
+
+    def intervals(s):
+        d, (t, _, _) = primary(s)
+        st = jnp.where(jnp.isfinite(t), t, FAR)
+        return [cone_intervals(s, light, d, st, light_reach(s, light)) for light in s.lights]
+
+    pieces = {"shadow maps": lambda s: [m.depth for m in maps(s)], "primary rays + hits": primary,
+              "surface shading (incl. maps)": surface, "cone intervals (incl. primary)": intervals}
+    out = {}
+    for key, fn in pieces.items():
+        _, _, wall, cpu = frame_times(jax.jit(fn), scene, repeats)
+        out[key] = (statistics.median(wall), cpu)
+    return out
+
+
+def gradient_ratio(scene, samples, repeats):
+    weights = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, (scene.camera.height, scene.camera.width, 3)),
+                          dtype=jnp.float32)
+    light = scene.lights[0]
+    params = dict(rho=scene.medium.rho, kappa=scene.medium.kappa, K=scene.medium.K,
+                  intensity=light.intensity, position=light.position)
+
+    def with_params(p):
+        s = eqx.tree_at(lambda s: (s.medium.rho, s.medium.kappa, s.medium.K), scene, (p["rho"], p["kappa"], p["K"]))
+        return eqx.tree_at(lambda s: (s.lights[0].intensity, s.lights[0].position), s, (p["intensity"], p["position"]))
+
+    loss = lambda p: jnp.sum(weights * render_equiangular(with_params(p), samples=samples))  # noqa: E731
+    _, c_f, wall_f, cpu_f = frame_times(jax.jit(loss), params, repeats)
+    _, c_g, wall_g, cpu_g = frame_times(jax.jit(jax.value_and_grad(loss)), params, repeats)
+    return dict(forward_s=statistics.median(wall_f), grad_s=statistics.median(wall_g), compile_grad_s=c_g,
+                ratio_wall=statistics.median(wall_g) / statistics.median(wall_f), ratio_cpu=cpu_g / cpu_f)
+
+
+def reference(name, scene, samples):
+    size = f"{scene.camera.width}x{scene.camera.height}"
+    cache = Path(os.environ.get("TMPDIR", "/tmp")) / f"shafts_ref_{name}_{size}_{samples}.npy"
+    if cache.exists():
+        return np.load(cache)
+    fn = jax.jit(lambda s: render_raymarch(s, samples=samples, batch_size=128, return_parts=True)[1][1])
+    t0 = time.perf_counter()
+    ref = np.asarray(jax.block_until_ready(fn(scene)), dtype=np.float64)
+    print(f"  reference {name}: ray march {samples} samples, {time.perf_counter() - t0:.0f} s", flush=True)
+    np.save(cache, ref)
+    return ref
+
+
+def plot(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for ax, name in zip(axes, ("stage", "spot")):
+        for method, colour in (("equiangular", "C0"), ("planes", "C2"), ("raymarch", "C3")):
+            pts = sorted((r["median_s"], r["err"]) for r in rows if r["scene"] == name and r["method"] == method)
+            if not pts:
+                continue
+            ax.plot([p[0] for p in pts], [100 * p[1] for p in pts], "o-", color=colour, label=method)
+        ax.axhline(100 * TARGET, color="k", lw=0.8, ls="--")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("median wall seconds per frame (shared 2-core CPU)")
+        ax.set_ylabel("relative RMS of in-scattered light (%)")
+        ax.set_title(name)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="240x160, fewer settings (smoke test)")
+    parser.add_argument("--size", default="720x480")
+    parser.add_argument("--ref-samples", type=int, default=256)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args(argv)
+    w, h = (240, 160) if args.quick else tuple(int(x) for x in args.size.split("x"))
+    repeats = 2 if args.quick else args.repeats
+    print(f"{os.cpu_count()} CPU cores, JAX {jax.__version__} ({jax.default_backend()}), float32, {w}x{h}, "
+          f"load average {os.getloadavg()}", flush=True)
+    scenes = {"spot": spot_scene(w, h), "stage": load_stage_scene(width=w, height=h)}
+    eq = [(n, 512) for n in ((8, 16, 24) if args.quick else (8, 12, 16, 20, 24, 32))] + [(24, None)]
+    rm = (8, 16, 24) if args.quick else (8, 12, 16, 20, 24, 32)
+    pl = [(8, 4, True), (30, 6, False)] if args.quick else [(8, 4, True), (12, 4, True), (16, 4, True), (30, 6, False)]
+    rows = []
+    for name, scene in scenes.items():
+        ref = reference(name, scene, 64 if args.quick else args.ref_samples)
+        settings = [("equiangular", s) for s in eq] + [("raymarch", s) for s in rm] + [("planes", s) for s in pl]
+        rows += sweep(name, scene, ref, settings, repeats)
+    FIGURES.mkdir(exist_ok=True)
+    suffix = "_quick" if args.quick else ""
+    plot(rows, FIGURES / f"shafts_interactive{suffix}.png")
+    for name in scenes:
+        best = min((r for r in rows if r["scene"] == name and r["method"] == "equiangular" and r["err"] <= TARGET),
+                   key=lambda r: r["median_s"], default=None)
+        if best is not None:
+            write_image(FIGURES / f"shafts_interactive_{name}{suffix}.png", best["image"], exposure=2.0)
+
+    summary = {}
+    for name in scenes:
+        for method in ("equiangular", "raymarch", "planes"):
+            ok = [r for r in rows if r["scene"] == name and r["method"] == method and r["err"] <= TARGET]
+            summary[(name, method)] = min(ok, key=lambda r: r["median_s"]) if ok else None
+    profiles = {name: fixed_part_profile(scene, repeats) for name, scene in scenes.items()}
+    grad = gradient_ratio(scenes["spot"], 24, repeats)
+    print(f"\nfixed parts (median wall s, median CPU s): {json.dumps(profiles, indent=1)}")
+    print(f"gradient: {grad}")
+    print("\n| scene | method | cheapest setting reaching 2 % | rel. RMS | compile s | wall s min/median/max | CPU s |")
+    print("|---|---|---|---|---|---|---|")
+    for (name, method), r in summary.items():
+        if r is None:
+            print(f"| {name} | {method} | none of the settings | | | | |")
+            continue
+        print(f"| {name} | {method} | {r['setting']} | {100 * r['err']:.2f} % | {r['compile_s']:.1f} | "
+              f"{r['min_s']:.3f} / {r['median_s']:.3f} / {r['max_s']:.3f} | {r['cpu_s']:.3f} |")
+    print("\nAll settings:\n\n| scene | method | setting | rel. RMS | compile s | wall s min/median/max | CPU s |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['scene']} | {r['method']} | {r['setting']} | {100 * r['err']:.2f} % | {r['compile_s']:.1f} | "
+              f"{r['min_s']:.3f} / {r['median_s']:.3f} / {r['max_s']:.3f} | {r['cpu_s']:.3f} |")
+
+    def verdict(ok):
+        return "met" if ok else "missed"
+
+    results = []
+    spot_eq, stage_eq, stage_rm = summary[("spot", "equiangular")], summary[("stage", "equiangular")], \
+        summary[("stage", "raymarch")]
+    if spot_eq:
+        results.append(dict(issue="13 light shafts", target="textured spot + sphere + floor 720x480 <= 40 ms at <= 2 %",
+                            measured=f"{1e3 * spot_eq['median_s']:.0f} ms wall, {1e3 * spot_eq['cpu_s']:.0f} ms CPU "
+                                     f"({spot_eq['setting']}, {100 * spot_eq['err']:.2f} %)",
+                            status=verdict(spot_eq["median_s"] <= 0.04)))
+    if stage_eq:
+        results.append(dict(issue="13 light shafts", target="five-spot stage 720x480 <= 0.17 s at <= 2 %",
+                            measured=f"{stage_eq['median_s']:.3f} s wall, {stage_eq['cpu_s']:.3f} s CPU "
+                                     f"({stage_eq['setting']}, {100 * stage_eq['err']:.2f} %)",
+                            status=verdict(stage_eq["median_s"] <= 0.17)))
+    if stage_eq and stage_rm:
+        ratio = stage_rm["median_s"] / stage_eq["median_s"]
+        results.append(dict(issue="13 light shafts", target=">= 17x the ray march at 2 % on the stage",
+                            measured=f"{ratio:.2f}x wall, {stage_rm['cpu_s'] / stage_eq['cpu_s']:.2f}x CPU "
+                                     f"(ray march {stage_rm['setting']})", status=verdict(ratio >= 17)))
+    results.append(dict(issue="13 light shafts", target="gradient <= 4x forward",
+                        measured=f"{grad['ratio_wall']:.2f}x wall, {grad['ratio_cpu']:.2f}x CPU (spot scene)",
+                        status=verdict(grad["ratio_wall"] <= 4)))
+    write_results("shafts_interactive", results, quick=args.quick)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
