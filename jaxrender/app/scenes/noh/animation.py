@@ -1,5 +1,6 @@
-"""The Noh animation: a sequence of frames rendered one jitted call each (`render_noh`), tone
-mapped with one exposure for the whole sequence, and written as PNG + EXR frames and a GIF."""
+"""The Noh animation: a sequence of frames rendered one jitted call each (`render_noh`: the
+moving garment of `.motion` by default, or the static drape), tone mapped with one exposure for
+the whole sequence, and written as PNG + EXR frames and a GIF."""
 
 from __future__ import annotations
 
@@ -18,15 +19,16 @@ from jaxrender.lights import EnvMap
 from jaxrender.timing import time_calls, timed_call
 
 from .frame import noh_frame_jit
+from .motion import render_moving_noh
 from .prepare import prepare_noh
-from .scene import noh_scene
+from .scene import garment_rig, noh_scene
 
 
 def render_noh(*, frames: int = 20, width: int = 720, height: int = 480, key: PRNGKeyArray | None = None,
                mask_rgb: np.ndarray | None = None, btfs: dict[str, list[BTFTexel]] | None = None,
                env: EnvMap | None = None, k_env: int = 20, k_fire: int = 20, progress=None,
                info: dict | None = None, time_repeats: int = 0, shadow_resolution: int = 512,
-               **scene_kwargs) -> Float[Array, "F H W 3"]:
+               moving: bool = True, frame_dt: float = 0.1, **scene_kwargs) -> Float[Array, "F H W 3"]:
     """The animation: `frames` linear-radiance frames H x W x 3 (float32).
 
     `progress(1)` is called after each frame; `info` (a dict) receives `prepare_s`, `compile_s`
@@ -34,7 +36,15 @@ def render_noh(*, frames: int = 20, width: int = 720, height: int = 480, key: PR
     (for `tonemap_frames`: the garment's 90th-percentile luminance in frame 0 -> 0.3).
     `time_repeats` = N: afterwards render N more frames (cycling through the sequence, discarded)
     and put their times into `info["timed_s"]` (compiled, `block_until_ready`).
+    `moving` (default): the garment dances (`.motion`, frames `frame_dt` s apart) and everything
+    that depends on it, shadows and the floor's reflection included, is computed every frame;
+    otherwise the static drape with the per-sequence part computed once (`prepare_noh`).
     """
+    if moving:
+        return _render_moving(frames=frames, width=width, height=height, key=key, mask_rgb=mask_rgb, btfs=btfs,
+                              env=env, k_env=k_env, k_fire=k_fire, progress=progress, info=info,
+                              time_repeats=time_repeats, shadow_resolution=shadow_resolution, frame_dt=frame_dt,
+                              **scene_kwargs)
     key = jax.random.key(2024) if key is None else key
     k_scene, k_env_key, k_frames = jax.random.split(key, 3)
     t0 = time.perf_counter()
@@ -58,6 +68,26 @@ def render_noh(*, frames: int = 20, width: int = 720, height: int = 480, key: PR
         info["timed_s"] = list(timed.runs_s) if timed else []
         lum = np.asarray(luminance(out[0].reshape(-1, 3)[np.asarray(prep.garment.index)]))
         info.update(prepare_s=prepare_s, compile_s=seconds[0], frame_s=seconds[1:],
+                    exposure=0.3 / max(float(np.percentile(lum, 90)) if lum.size else 1.0, 1e-6))
+    return np.stack(out)
+
+
+def _render_moving(*, frames, width, height, key, mask_rgb, btfs, env, k_env, k_fire, progress, info, time_repeats,
+                   shadow_resolution, frame_dt, cloth_rows: int = 40, cloth_cols: int = 32, **scene_kwargs):
+    key = jax.random.key(2024) if key is None else key
+    k_scene, k_rest = jax.random.split(key)
+    t0 = time.perf_counter()
+    scene = noh_scene(width=width, height=height, frames=frames, key=k_scene, mask_rgb=mask_rgb, btfs=btfs, env=env,
+                      cloth_rows=cloth_rows, cloth_cols=cloth_cols, **scene_kwargs)
+    scene_s = time.perf_counter() - t0
+    details: dict = {}
+    out, _ = render_moving_noh(scene, garment_rig(cloth_rows, cloth_cols), frames=frames, key=k_rest, k_env=k_env,
+                               k_fire=k_fire, frame_dt=frame_dt, shadow_resolution=shadow_resolution,
+                               progress=progress, time_repeats=time_repeats, info=details)
+    if info is not None:
+        mask = details.pop("garment_mask").reshape(-1)
+        lum = np.asarray(luminance(out[0].reshape(-1, 3)[mask]))
+        info.update(details, prepare_s=scene_s + details["prepare_s"],
                     exposure=0.3 / max(float(np.percentile(lum, 90)) if lum.size else 1.0, 1e-6))
     return np.stack(out)
 

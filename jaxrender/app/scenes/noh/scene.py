@@ -1,5 +1,5 @@
 """The Noh scene assembled (metres, y up, the stage floor at y = 0): a garment hung from two
-shoulder points (`sims.drape_cloth`, Verlet mass-spring) in front of the camera, four bonfires
+shoulder points (`sims.drape_garment`, Verlet mass-spring) in front of the camera, four bonfires
 around the stage, each a flame quad whose emission texture is the current frame of
 `sims.fire_frames`, the garment's materials by its mask, and the environment."""
 
@@ -18,7 +18,7 @@ from jaxrender.camera import Camera
 from jaxrender.fabric import MaterialSet, stack_materials
 from jaxrender.lights import EnvMap, QuadLights
 from jaxrender.maths import default_float
-from sims import drape_cloth, fire_frames
+from sims import DrapedCloth, cloth_mesh, drape_garment, fire_frames
 
 from .environment import default_environment
 from .mask import LABELS, default_mask, mask_from_rgb
@@ -26,9 +26,15 @@ from .materials import default_btfs
 
 
 @functools.lru_cache(maxsize=2)
+def garment_rig(rows: int, cols: int) -> DrapedCloth:
+    """The settled garment and its simulation rig (the moving sequence continues from it)."""
+    return drape_garment(rows=rows, cols=cols, top=1.6, height=1.5, shoulder_span=1.0, shoulder_u=0.08,
+                         body_radius=0.12, body_z=-0.16, folds=5, fold_depth=0.05)
+
+
 def _cloth(rows: int, cols: int):
-    return drape_cloth(rows=rows, cols=cols, top=1.6, height=1.5, shoulder_span=1.0, shoulder_u=0.08, body_radius=0.12,
-                       body_z=-0.16, folds=5, fold_depth=0.05)
+    rig = garment_rig(rows, cols)
+    return cloth_mesh(rig, rig.state.x)
 
 
 class NohScene(eqx.Module):

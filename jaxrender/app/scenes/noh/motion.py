@@ -1,0 +1,377 @@
+"""The Noh garment in motion, reflected in the polished stage floor (paper 004 sections 4.3 and
+4.5), every frame computed from the geometry of that frame.
+
+The garment (`sims.drape_garment`) is driven by a procedural dance (`sims.BodyMotion`: a slow
+turn and sway, the hands lifting): each frame continues the Verlet simulation from the previous
+frame's state (`sims.advance_cloth`, `steps` steps of the cloth's dt), then everything that
+depends on the geometry follows it in the same jitted call (`moving_frame`): the rasterized
+G-buffer and the garment's pixels (compacted into a fixed capacity), mip selection from their uv
+derivatives, the garment's depth map from each fire and PCSS for every garment and floor point,
+I_static of the garment (K_env environment samples) and the firelight (K_f samples of the
+frame's flames), and the reflection in the floor.
+
+The polished stage floor: the garment and the flames are mirrored in the floor plane
+(`jaxrender.fabric.mirror_mesh`) and rasterized/intersected with the camera's own rays; every
+mirrored garment pixel is shaded as the real garment point it shows, seen from the floor point
+(the mirrored view direction), with its own PCSS. The reflected image (sky mirrored, garment,
+flames) is blurred by the floor's roughness and weighted by the Fresnel reflectance of its coat
+(`jaxrender.fabric.glossy_reflection`); the stage's diffuse light is scaled by 1 - F, and its
+specular lobe is dropped (the reflection is the specular part). The gravel does not reflect.
+
+What stays over the sequence (`MotionRig`, from `prepare_motion`): the floor points and their
+environment light (nothing moves between them and the sky), the background sky and the mirrored
+sky, the environment samples, and the fires' shadow-map frames (aimed at the garment's starting
+pose, with a field of view wide enough for the motion).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from jaxrender.fabric import (
+    Pinhole,
+    camera_pinhole,
+    depth_map,
+    fresnel_schlick,
+    glossy_blur_pixels,
+    glossy_reflection,
+    mirror_mesh,
+    raster_window,
+    rasterize,
+    reflect_directions,
+    reflect_points,
+    spot_pinhole,
+    tangent_frames,
+)
+from jaxrender.lights import QuadLights, env_radiance, sample_envmap, sample_quad_lights
+from jaxrender.maths import normalize
+from jaxrender.shadows import ShadowMap
+from jaxrender.textures import bilinear
+from sims import BodyMotion, ClothState, DrapedCloth, advance_cloth, cloth_mesh
+
+from .frame import fire_light
+from .prepare import ViewSurfaces, fire_visibility, flame_billboards, floor_texels, garment_points
+from .scene import NohScene
+from .shading import FloorPoints, GarmentPoints, SurfaceLight, shade_floor, shade_garment, shared_light
+
+STAGE_F0 = 0.04          # reflectance at normal incidence of the waxed hinoki (a coat of index ~1.5)
+STAGE_ROUGHNESS = 0.03   # radians: the spread of the polished floor's reflected rays
+FAR_BEYOND = 100.0       # m: what the floor reflects of the sky lies this far beyond it (for the blur)
+
+
+class MotionRig(eqx.Module):
+    """Everything constant over a moving sequence (module docstring)."""
+
+    cloth: DrapedCloth
+    motion: BodyMotion
+    pinhole: Pinhole                        # the camera's
+    floor: FloorPoints                      # every pixel whose ray meets the floor plane
+    floor_static: Float[Array, "P 3"]
+    floor_coat: Float[Array, "H W"]         # 1 where the polished stage is, 0 on the gravel and off the floor
+    background: Float[Array, "H W 3"]
+    mirrored_sky: Float[Array, "H W 3"]
+    rays: Float[Array, "H W 3"]
+    t_floor: Float[Array, "H W"]
+    env_direction: Float[Array, "K 3"]
+    env_weight: Float[Array, "K 3"]
+    light_position: Float[Array, "Q 3"]
+    light_rotation: Float[Array, "Q 3 3"]
+    tan_cutoff: float = eqx.field(static=True)
+    window: int = eqx.field(static=True)
+    shadow_window: int = eqx.field(static=True)
+    shadow_resolution: int = eqx.field(static=True)
+    capacity: int = eqx.field(static=True)
+    reflection_capacity: int = eqx.field(static=True)
+    steps: int = eqx.field(static=True)
+    near: float = eqx.field(static=True)
+    roughness: float = eqx.field(static=True)
+
+
+class FrameCounts(eqx.Module):
+    """What a frame needed, for the host to check against the rig's fixed sizes, and where the
+    garment is in the image (for the sequence's exposure)."""
+
+    garment_mask: Array
+    garment: Array
+    reflection: Array
+    view_extent: Array
+    shadow_extent: Array
+
+
+def _round_up(n: float, granule: int = 1024) -> int:
+    return int(granule * math.ceil(max(n, 1) / granule))
+
+
+def _pow2(n: float) -> int:
+    return int(2 ** math.ceil(math.log2(max(2.0, n))))
+
+
+def _extent(ph: Pinhole, vertices: Array, triangles: Array) -> Array:
+    """The largest projected bounding box of a triangle, in pixels (what `raster_window` measures)."""
+    px, _ = ph.project(vertices)
+    px = px[triangles]
+    size = jnp.asarray([ph.width, ph.height], px.dtype)
+    lo = jnp.clip(jnp.floor(jnp.min(px, axis=1) - 0.5), 0, size)
+    hi = jnp.clip(jnp.ceil(jnp.max(px, axis=1) + 0.5), 0, size)
+    return jnp.max(hi - lo)
+
+
+def _shadow_frames(scene: NohScene, vertices: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Each fire's shadow camera aimed at the garment's bounding box centre, one field of view for
+    all (the largest needed, times `margin` for the motion)."""
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    target = 0.5 * (lo + hi)
+    corners = np.asarray([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
+    positions, rotations, tan_c = [], [], 0.0
+    for pos in np.asarray(scene.fires.center, np.float64):
+        z = target - pos
+        z /= np.linalg.norm(z)
+        x = np.cross([0.0, 1.0, 0.0], z)
+        x /= np.linalg.norm(x)
+        rot = np.stack([x, np.cross(z, x), z])
+        local = (corners - pos) @ rot.T
+        tan_c = max(tan_c, float(np.max(np.abs(local[:, :2]) / local[:, 2:3])))
+        positions.append(pos)
+        rotations.append(rot)
+    return np.asarray(positions), np.asarray(rotations), tan_c * margin
+
+
+def prepare_motion(scene: NohScene, cloth: DrapedCloth, motion: BodyMotion, *, key: PRNGKeyArray, k_env: int = 20,
+                   shadow_resolution: int = 512, near: float = 0.5, frame_dt: float = 0.1,
+                   roughness: float = STAGE_ROUGHNESS) -> MotionRig:
+    """The sequence's constant part and the fixed sizes of the per-frame buffers (from the
+    settled garment, with margins for the motion; `moving_noh` grows them if a frame needs more)."""
+    dtype = scene.vertices.dtype
+    ph = camera_pinhole(scene.camera)
+    h, w = ph.height, ph.width
+    gy, gx = jnp.meshgrid(jnp.arange(h, dtype=dtype) + 0.5, jnp.arange(w, dtype=dtype) + 0.5, indexing="ij")
+    rays = ph.ray(jnp.stack([gx, gy], -1))
+    down = rays[..., 1] < -1e-6
+    t_floor = jnp.where(down, -ph.origin[1] / jnp.where(down, rays[..., 1], -1.0), jnp.inf)
+    f_index = jnp.asarray(np.flatnonzero(np.isfinite(np.asarray(t_floor))), jnp.int32)
+    flat_rays = rays.reshape(-1, 3)[f_index]
+    pos = ph.origin[None, :] + t_floor.reshape(-1)[f_index][:, None] * flat_rays
+    texel = floor_texels(pos)
+    stage = texel.lobe0.rho_s[:, 0] > 0
+    # the polished stage: its specular part is the reflection, so the lobe is dropped
+    lobe = eqx.tree_at(lambda lb: lb.rho_s, texel.lobe0, jnp.zeros_like(texel.lobe0.rho_s))
+    texel = eqx.tree_at(lambda t: (t.lobe0, t.lobe1), texel, (lobe, lobe))
+    floor = FloorPoints(f_index, pos, -flat_rays, texel)
+    s = sample_envmap(scene.env, key, k_env)
+    env_weight = s.radiance * ((s.direction[:, 1] > 0).astype(s.radiance.dtype) / (k_env * s.pdf))[:, None]
+    floor_static = shade_floor(floor, shared_light(s.direction, env_weight, pos.shape[0]))
+    coat = jnp.zeros((h * w,), dtype).at[f_index].set(stage.astype(dtype)).reshape(h, w)
+    up = jnp.asarray([0.0, 1.0, 0.0], dtype)
+    background = env_radiance(scene.env, rays, filter="mitsuba")
+    mirrored_sky = env_radiance(scene.env, reflect_directions(rays, up), filter="mitsuba")
+    # fixed sizes from the settled pose, with margins for the motion
+    x0 = np.asarray(cloth.state.x)
+    light_pos, light_rot, tan_c = _shadow_frames(scene, x0, margin=1.6)
+    tris = cloth.triangles
+    window = _pow2(2 * raster_window(ph, cloth.state.x, tris))
+    spot = [spot_pinhole(p, r, tan_c, shadow_resolution) for p, r in zip(light_pos, light_rot)]
+    shadow_window = _pow2(2 * max(raster_window(sp, cloth.state.x, tris) for sp in spot))
+    gb = rasterize(ph, cloth.state.x, tris, cloth.uv.reshape(-1, 2), window=window)
+    count = int(np.sum(np.asarray(gb.hit) > 0))
+    steps = max(1, int(round(frame_dt / cloth.dt)))
+    return MotionRig(cloth, motion, ph, floor, floor_static, coat, background, mirrored_sky, rays, t_floor, s.direction,
+                     env_weight, jnp.asarray(light_pos, dtype), jnp.asarray(light_rot, dtype), float(tan_c), window,
+                     shadow_window, shadow_resolution, _round_up(1.5 * count), _round_up(0.5 * count), steps,
+                     float(near), float(roughness))
+
+
+def _compact(mask: Array, capacity: int) -> tuple[Array, Array, Array]:
+    """(scatter index with out-of-range padding, gather index clipped into range, count)."""
+    flat = mask.reshape(-1)
+    n = flat.shape[0]
+    index = jnp.nonzero(flat, size=capacity, fill_value=n)[0].astype(jnp.int32)
+    return index, jnp.minimum(index, n - 1), jnp.sum(flat.astype(jnp.int32))
+
+
+def _with_light(a: SurfaceLight, b: SurfaceLight) -> SurfaceLight:
+    """Two sets of samples at the same points as one (one shading pass)."""
+    return SurfaceLight(jnp.concatenate([a.direction, b.direction], 1), jnp.concatenate([a.weight, b.weight], 1))
+
+
+def _mirrored_flames(fires: QuadLights, eye: Array, rays: Array, t_min: Array, t_max: Array) -> tuple[Array, Array]:
+    """Each flame quad mirrored in the floor, hit by the view rays between t_min and t_max: (uv, hit)."""
+    up = jnp.asarray([0.0, 1.0, 0.0], rays.dtype)
+    centre = reflect_points(fires.center, jnp.zeros(3, rays.dtype), up)
+    v = reflect_directions(fires.v, up)
+    uvs, hits = [], []
+    pixel = lambda vec: vec.reshape((1,) * (rays.ndim - 1) + (3,))  # noqa: E731
+    for q in range(centre.shape[0]):  # four fires: unrolled
+        nrm = normalize(jnp.cross(fires.u[q], v[q]))
+        denom = jnp.sum(rays * pixel(nrm), -1)
+        safe = jnp.where(jnp.abs(denom) > 1e-9, denom, 1e-9)
+        t = jnp.sum((centre[q] - eye) * nrm) / safe
+        p = pixel(eye) + t[..., None] * rays - pixel(centre[q])
+        a = jnp.sum(p * pixel(fires.u[q]), -1) / jnp.sum(fires.u[q] ** 2)
+        b = jnp.sum(p * pixel(v[q]), -1) / jnp.sum(v[q] ** 2)
+        inside = (jnp.abs(a) <= 1) & (jnp.abs(b) <= 1) & (t > t_min) & (t < t_max)
+        hits.append(inside.astype(rays.dtype))
+        uvs.append(jnp.stack([(a + 1) / 2, (1 - b) / 2], -1))
+    return jnp.stack(uvs), jnp.stack(hits)
+
+
+def _mirror_back(points: GarmentPoints, up: Array) -> GarmentPoints:
+    """Garment points rasterized from the mirrored mesh, as the real points they show: position,
+    view direction (toward the floor point) and shading frame reflected back."""
+    origin = jnp.zeros(3, points.position.dtype)
+    frame = tangent_frames(reflect_directions(points.frame[:, 2], up), reflect_directions(points.frame[:, 0], up))
+    return eqx.tree_at(lambda p: (p.position, p.wo, p.frame), points,
+                       (reflect_points(points.position, origin, up), reflect_directions(points.wo, up), frame))
+
+
+def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: Float[Array, "Q Hf Wf 3"],
+                 key: PRNGKeyArray, *, k_fire: int = 20, blend: str = "shading"
+                 ) -> tuple[Float[Array, "H W 3"], ClothState, FrameCounts]:
+    """One frame of the moving garment (module docstring): the cloth advanced by a frame, then
+    the view, shadows, lighting and reflection of its new pose."""
+    cloth = rig.cloth
+    state = advance_cloth(cloth, state, rig.motion, steps=rig.steps)
+    x = state.x
+    dtype = x.dtype
+    normals = cloth_mesh(cloth, x).normals.reshape(-1, 3)
+    geo = eqx.tree_at(lambda s: (s.vertices, s.vertex_normals), scene, (x, normals))
+    ph = rig.pinhole
+    h, w = ph.height, ph.width
+    uv = cloth.uv.reshape(-1, 2)
+    up = jnp.asarray([0.0, 1.0, 0.0], dtype)
+
+    # what the camera sees: the garment in front of the floor plane
+    gb = rasterize(ph, x, cloth.triangles, uv, window=rig.window)
+    garment = (gb.hit > 0) & (gb.distance < rig.t_floor)
+    view = ViewSurfaces(gb, rig.rays, rig.t_floor, garment, ~garment & jnp.isfinite(rig.t_floor))
+    g_scatter, g_gather, g_count = _compact(garment, rig.capacity)
+    points = garment_points(ph, geo, gb, g_gather)
+
+    # shadow maps of this pose from every fire, PCSS at every garment, floor and reflected point
+    maps = [ShadowMap(depth=depth_map(spot_pinhole(rig.light_position[q], rig.light_rotation[q], rig.tan_cutoff,
+                                                   rig.shadow_resolution), x, cloth.triangles,
+                                      window=rig.shadow_window),
+                      position=rig.light_position[q], rotation=rig.light_rotation[q],
+                      tan_cutoff=jnp.asarray(rig.tan_cutoff, dtype))
+            for q in range(rig.light_position.shape[0])]
+
+    # the mirrored garment: what the floor reflects, as real garment points seen from the floor
+    mv, mn, mt = mirror_mesh(x, normals, cloth.triangles, jnp.zeros(3, dtype), up)
+    gbr = rasterize(ph, mv, mt, uv, window=rig.window)
+    reflects = (gbr.hit > 0) & (rig.floor_coat > 0) & ~garment
+    r_scatter, r_gather, r_count = _compact(reflects, rig.reflection_capacity)
+    mirror = eqx.tree_at(lambda s: (s.vertices, s.vertex_normals, s.triangles), scene, (mv, mn, mt))
+    mirrored = _mirror_back(garment_points(ph, mirror, gbr, r_gather), up)
+
+    n_g, n_r = points.position.shape[0], mirrored.position.shape[0]
+    vis = fire_visibility(maps, jnp.concatenate([points.position, mirrored.position, rig.floor.position]), rig.near)
+
+    # light: the same environment samples, the frame's flames
+    fires = eqx.tree_at(lambda f: f.emission, scene.fires, emission)
+    samples = sample_quad_lights(fires, key, k_fire)
+    n_fires = fires.center.shape[0]
+
+    def garment_light(p, v):
+        return _with_light(shared_light(rig.env_direction, rig.env_weight, p.position.shape[0]),
+                           fire_light(samples, p.position, v, n_fires))
+
+    both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), points, mirrored)
+    lit = shade_garment(scene.mats, both, garment_light(both, vis[:n_g + n_r]), blend=blend)
+    g_rad, r_rad = lit[:n_g], lit[n_g:]
+    f_rad = shade_floor(rig.floor, fire_light(samples, rig.floor.position, vis[n_g + n_r:], n_fires)) + rig.floor_static
+
+    # the reflection: mirrored sky, garment and flames, blurred by the roughness, times Fresnel
+    beyond = jnp.where(gbr.hit > 0, gbr.distance - rig.t_floor, FAR_BEYOND)
+    reflected = rig.mirrored_sky.reshape(h * w, 3).at[r_scatter].set(r_rad, mode="drop").reshape(h, w, 3)
+    t_stop = jnp.where(gbr.hit > 0, gbr.distance, jnp.inf)
+    m_uv, m_hit = _mirrored_flames(fires, ph.origin, rig.rays, rig.t_floor, t_stop)
+    for q in range(n_fires):
+        reflected = reflected + m_hit[q][..., None] * bilinear(emission[q], m_uv[q], wrap="clamp")
+    cos = jnp.clip(-rig.rays[..., 1], 0.0, 1.0)
+    focal = ph.fy
+    blur = glossy_blur_pixels(rig.roughness, beyond, jnp.where(jnp.isfinite(rig.t_floor), rig.t_floor, 0.0), focal)
+    mirror_light = rig.floor_coat[..., None] * glossy_reflection(reflected, blur, cos, f0=STAGE_F0)
+    fresnel = rig.floor_coat * fresnel_schlick(cos, STAGE_F0)
+
+    # compose: sky, floor (diffuse x (1 - F) + reflection), garment, visible flames
+    img = rig.background.reshape(h * w, 3)
+    f_idx = rig.floor.index
+    img = img.at[f_idx].set(f_rad * (1 - fresnel.reshape(-1)[f_idx])[:, None] + mirror_light.reshape(-1, 3)[f_idx])
+    img = img.at[g_scatter].set(g_rad, mode="drop").reshape(h, w, 3)
+    flames = flame_billboards(scene, ph, view)
+    for q in range(n_fires):  # four fires: unrolled
+        img = img + flames.hit[q][..., None] * bilinear(emission[q], flames.uv[q], wrap="clamp")
+    spots = [spot_pinhole(rig.light_position[q], rig.light_rotation[q], rig.tan_cutoff, rig.shadow_resolution)
+             for q in range(n_fires)]
+    counts = FrameCounts(garment, g_count, r_count, jnp.maximum(_extent(ph, x, cloth.triangles), _extent(ph, mv, mt)),
+                         jnp.max(jnp.stack([_extent(sp, x, cloth.triangles) for sp in spots])))
+    return img, state, counts
+
+
+moving_frame_jit = eqx.filter_jit(moving_frame)
+
+
+def grown(rig: MotionRig, counts: FrameCounts) -> MotionRig | None:
+    """A rig with larger buffers if the frame's `counts` overflowed this one's (None if it fit)."""
+    changes = {}
+    if int(counts.garment) > rig.capacity:
+        changes["capacity"] = _round_up(1.25 * int(counts.garment))
+    if int(counts.reflection) > rig.reflection_capacity:
+        changes["reflection_capacity"] = _round_up(1.25 * int(counts.reflection))
+    if float(counts.view_extent) > rig.window:
+        changes["window"] = _pow2(float(counts.view_extent))
+    if float(counts.shadow_extent) > rig.shadow_window:
+        changes["shadow_window"] = _pow2(float(counts.shadow_extent))
+    if not changes:
+        return None
+    return dataclasses.replace(rig, **changes)
+
+
+def render_moving_noh(scene: NohScene, cloth: DrapedCloth, *, frames: int, key: PRNGKeyArray,
+                      motion: BodyMotion | None = None, k_env: int = 20, k_fire: int = 20, frame_dt: float = 0.1,
+                      shadow_resolution: int = 512, progress=None, time_repeats: int = 0,
+                      info: dict | None = None) -> tuple[list[np.ndarray], MotionRig]:
+    """`frames` frames of the moving garment, `frame_dt` s apart (the flames cycle through
+    their frames), each continuing the cloth from the previous one; then `time_repeats` more
+    frames (continuing the dance, discarded) timed into `info["timed_s"]`. A frame that needs
+    larger buffers than the rig has is rendered again with grown ones (one more compile).
+    `info` also gets `prepare_s`, `compile_s` (the first frame), `frame_s`, `recompiles` and
+    `garment_mask` (where the garment is in the first frame)."""
+    motion = BodyMotion(axis_z=float(cloth.capsule[1])) if motion is None else motion
+    k_env_key, k_frames = jax.random.split(key)
+    t0 = time.perf_counter()
+    rig = jax.block_until_ready(prepare_motion(scene, cloth, motion, key=k_env_key, k_env=k_env,
+                                               shadow_resolution=shadow_resolution, frame_dt=frame_dt))
+    prepare_s = time.perf_counter() - t0
+    n_flames = scene.flames.shape[1]
+    state = cloth.state
+    out, seconds, recompiles, mask0 = [], [], 0, None
+    for i in range(frames + time_repeats):
+        ts = time.perf_counter()
+        while True:
+            image, new_state, counts = jax.block_until_ready(
+                moving_frame_jit(scene, rig, state, scene.flames[:, i % n_flames], jax.random.fold_in(k_frames, i),
+                                 k_fire=k_fire))
+            bigger = grown(rig, counts)
+            if bigger is None:
+                break
+            rig, recompiles = bigger, recompiles + 1
+        seconds.append(time.perf_counter() - ts)
+        state = new_state
+        if i == 0:
+            mask0 = np.asarray(counts.garment_mask)
+        if i < frames:
+            out.append(np.asarray(image, np.float32))
+            if progress is not None:
+                progress(1)
+    if info is not None:
+        info.update(prepare_s=prepare_s, compile_s=seconds[0], frame_s=seconds[1:frames],
+                    timed_s=seconds[frames:], recompiles=recompiles, garment_mask=mask0)
+    return out, rig
