@@ -103,6 +103,13 @@ def _peer_texel(job) -> dict:
     return {"cost": float(sol.cost), "nfev": int(sol.nfev), "cpu_s": time.process_time() - c0}
 
 
+def _warm_worker(job) -> int:
+    """One texel and a pause (so that the next task goes to the other worker); the worker's pid."""
+    _peer_texel(job)
+    time.sleep(0.2)
+    return os.getpid()
+
+
 def timed_fit(obs, solver, chunk):
     # compile: the first chunk's shape (every chunk is padded to it)
     h, w = obs.size
@@ -190,8 +197,10 @@ def main(argv=None) -> dict:
         for kind in ("naive", "varpro"):
             jobs = [(kind, ratio[i].astype(np.float64), weight[i].astype(np.float64), d64, v64, x0)
                     for i, x0 in zip(subset, x0s)]
-            if pool:
-                pool.map(_peer_texel, jobs[:2])  # start-up of the workers apart
+            if pool:  # start-up apart: every worker has imported everything and run a texel
+                pids = set()
+                while len(pids) < 2:
+                    pids |= set(pool.map(_warm_worker, [jobs[0]] * 2, chunksize=1))
             t0, c0 = time.perf_counter(), time.process_time()
             out = pool.map(_peer_texel, jobs) if pool else [_peer_texel(j) for j in jobs]
             wall, cpu_parent = time.perf_counter() - t0, time.process_time() - c0
