@@ -415,7 +415,7 @@ def equal_cores_report(records: list[dict], quick: bool) -> None:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="small sizes (about a minute)")
+    parser.add_argument("--quick", action="store_true", help="tiny sizes: a smoke run (compile dominates)")
     parser.add_argument("--speed-runs", type=int, default=0, metavar="N",
                         help="only the woven pyramid's speed, N measurements, and the time per level")
     parser.add_argument("--equal-cores", action="store_true", help="only (d), both core settings")
@@ -443,8 +443,8 @@ def main(argv=None):
         speed_runs(args.speed_runs)
         return
     quick = args.quick
-    n_texels, n_pairs = (256, 2000) if quick else (4096, 8000)
-    size = (64, 64) if quick else (256, 256)
+    n_texels, n_pairs = (64, 500) if quick else (4096, 8000)
+    size = (16, 16) if quick else (256, 256)
     load = os.getloadavg()[0]
     print(f"# EM multi-resolution BTF benchmark ({platform.machine()}, {jax.devices()[0].platform}, "
           f"jax {jax.__version__}, {'quick' if quick else 'full'})\n")
@@ -463,7 +463,7 @@ def main(argv=None):
         em, mo, mip = err["EM 2-lobe"], err["moment 1-lobe"], err["mip"]
         print(f"| {label} | {pairs} | {em:.2e} | {mo:.2e} | {mip:.2e} | {em / mip:.3f} | {em / mo:.3f} |")
 
-    n_pairs_synth = 64 if quick else 256
+    n_pairs_synth = 16 if quick else 256
     rows, level0, pyramids, _, _ = errors_synth_pyramid(size, n_pairs_synth)
     print(f"\nSynthetic woven BTF {size[0]}x{size[1]} (fitting.synth_maps), every level vs the box-filtered "
           f"level-0 rendering, {n_pairs_synth} pairs drawn as above:\n")
@@ -487,7 +487,7 @@ def main(argv=None):
               f"{s['jax_cpu']:.3f} | {s['numpy_cpu']:.3f} | {s['numpy_cpu'] / s['jax_cpu']:.1f}x | "
               f"{s['accuracy']:.1e} | {100 * s['two_lobe_level1']:.0f} % | {s['max_iterations']} |")
 
-    n_problems, n_samples = (5, 500) if quick else (20, 2000)
+    n_problems, n_samples = (2, 200) if quick else (20, 2000)
     rows = sklearn_agreement(n_problems, n_samples)
     print(f"\n## (c) scikit-learn GaussianMixture(2, 'diag'), same init, {n_problems} problems x {n_samples} "
           "samples, float64\n")

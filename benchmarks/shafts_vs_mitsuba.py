@@ -86,7 +86,7 @@ def rel_rms(x, ref) -> float:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="192 x 128, fewer samples")
+    parser.add_argument("--quick", action="store_true", help="96 x 64, fewer samples and settings (smoke run)")
     parser.add_argument("--spps", default=None, help="Mitsuba sample counts for the noise law (default 4,16,64,256)")
     args = parser.parse_args(argv)
 
@@ -102,13 +102,13 @@ def main(argv: list[str] | None = None) -> dict:
 
     from jaxrender.shafts import render_planes, render_raymarch
 
-    w, h = (192, 128) if args.quick else (C.PAPER_W, C.PAPER_H)
+    w, h = (96, 64) if args.quick else (C.PAPER_W, C.PAPER_H)
     print(f"# light shafts vs Mitsuba 3, {w} x {h}; Mitsuba {note}; {C.machine()}")
 
     # -- 1. converged images agree (low resolution) ------------------------------------------------
-    down = 8 if args.quick else 6  # Mitsuba's check image: 24 x 16 (quick) or 120 x 80
+    down = 8 if args.quick else 6  # Mitsuba's check image: 12 x 8 (quick) or 120 x 80
     wl, hl = w // down, h // down
-    check_spp, check_seeds = (512, 4) if args.quick else (2048, 4)
+    check_spp, check_seeds = (128, 2) if args.quick else (2048, 4)
     reps = [mitsuba_render(C.sphere_scene(wl, hl), check_spp, 100 + k, variant)[0] for k in range(check_seeds)]
     reps = np.stack(reps)
     mi_mean = reps.mean(axis=0)
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> dict:
     b = 4
     se = np.sqrt(mi_var.reshape(hl // b, b, wl // b, b, 3).sum(axis=(1, 3))) / (b * b)
     scene_full = C.load(C.sphere_scene(w, h))
-    march_ref = eqx.filter_jit(functools.partial(render_raymarch, samples=1000))
+    march_ref = eqx.filter_jit(functools.partial(render_raymarch, samples=200 if args.quick else 1000))
     exact, c_exact, _ = C.timed(march_ref, scene_full, repeats=0)
     agree_rows = []
     planes_default = eqx.filter_jit(functools.partial(render_planes, planes=30, subplanes=6))
@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> dict:
                    "max |diff| / tolerance", "agree", "image mean ours / Mitsuba"], agree_rows))
 
     # -- 2a. ours: error against the exact integral, and time ----------------------------------------
-    settings = [(10, 2), (20, 3), (30, 6)]
+    settings = [(10, 2)] if args.quick else [(10, 2), (20, 3), (30, 6)]
     ours_rows, ours_best = [], None
     for n, m in settings:
         fn = eqx.filter_jit(functools.partial(render_planes, planes=n, subplanes=m))
@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> dict:
                   ours_rows))
 
     # -- 2b. Mitsuba: noise vs time -------------------------------------------------------------------
-    spps = [int(x) for x in args.spps.split(",")] if args.spps else ([2, 8, 32] if args.quick else [4, 16, 64, 256])
+    spps = [int(x) for x in args.spps.split(",")] if args.spps else ([1, 4, 16] if args.quick else [4, 16, 64, 256])
     scene_dict = C.sphere_scene(w, h)
     mitsuba_render(scene_dict, 1, 0, variant)  # warm-up: the LLVM backend compiles its kernels once
     mi_rows, errs, secs = [], [], []
