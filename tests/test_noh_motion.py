@@ -79,3 +79,26 @@ def test_floor_reflection_adds_the_mirrored_scene_within_fresnel(setup):
     assert np.mean(reflection[floor]) > 0
     off = ~stage & ~np.asarray(counts.garment_mask)
     np.testing.assert_allclose(shiny[off], dull[off], atol=1e-6)      # the gravel and the sky do not reflect
+
+
+def test_floor_points_skipped_by_the_shadow_filter_are_exactly_lit(setup):
+    """PCSS is evaluated only at floor points near a fire's shadow of the garment; everywhere else
+    it would have returned exactly 1."""
+    from jaxrender.app.scenes.noh.motion import _near_shadows
+    from jaxrender.fabric import depth_map, spot_pinhole
+    from jaxrender.shadows import ShadowMap, pcss
+
+    scene, cloth, rig = setup
+    x = cloth.state.x
+    maps = []
+    for q in range(rig.light_position.shape[0]):
+        sp = spot_pinhole(rig.light_position[q], rig.light_rotation[q], rig.tan_cutoff, rig.shadow_resolution)
+        maps.append(ShadowMap(depth=depth_map(sp, x, cloth.triangles, window=rig.shadow_window),
+                              position=sp.origin, rotation=sp.rotation, tan_cutoff=jnp.asarray(rig.tan_cutoff)))
+    points = rig.floor.position
+    need = np.asarray(_near_shadows(maps, points))
+    assert 0 < need.sum() < need.size
+    for sm in maps:
+        vis = np.asarray(pcss(sm, points, light_size=0.55, near=rig.near, bias=0.02))
+        np.testing.assert_array_equal(vis[~need], 1.0)
+        assert np.any(vis[need] < 1.0) or sm is not maps[0]

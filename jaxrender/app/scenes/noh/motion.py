@@ -6,7 +6,8 @@ turn and sway, the hands lifting): each frame continues the Verlet simulation fr
 frame's state (`sims.advance_cloth`, `steps` steps of the cloth's dt), then everything that
 depends on the geometry follows it in the same jitted call (`moving_frame`): the rasterized
 G-buffer and the garment's pixels (compacted into a fixed capacity), mip selection from their uv
-derivatives, the garment's depth map from each fire and PCSS for every garment and floor point,
+derivatives, the garment's depth map from each fire and PCSS for every garment point and every
+floor point the garment's shadow can reach (`_near_shadows`; PCSS is exactly 1 elsewhere),
 I_static of the garment (K_env environment samples) and the firelight (K_f samples of the
 frame's flames), and the reflection in the floor.
 
@@ -53,7 +54,7 @@ from jaxrender.fabric import (
 )
 from jaxrender.lights import QuadLights, env_radiance, sample_envmap, sample_quad_lights
 from jaxrender.maths import normalize
-from jaxrender.shadows import ShadowMap
+from jaxrender.shadows import ShadowMap, shadow_uv_distance
 from jaxrender.textures import bilinear
 from sims import BodyMotion, ClothState, DrapedCloth, advance_cloth, cloth_mesh
 
@@ -90,6 +91,7 @@ class MotionRig(eqx.Module):
     shadow_resolution: int = eqx.field(static=True)
     capacity: int = eqx.field(static=True)
     reflection_capacity: int = eqx.field(static=True)
+    floor_capacity: int = eqx.field(static=True)   # floor points near a fire's shadow of the garment
     steps: int = eqx.field(static=True)
     near: float = eqx.field(static=True)
     roughness: float = eqx.field(static=True)
@@ -102,6 +104,7 @@ class FrameCounts(eqx.Module):
     garment_mask: Array
     garment: Array
     reflection: Array
+    floor: Array
     view_extent: Array
     shadow_extent: Array
 
@@ -176,15 +179,19 @@ def prepare_motion(scene: NohScene, cloth: DrapedCloth, motion: BodyMotion, *, k
     x0 = np.asarray(cloth.state.x)
     light_pos, light_rot, tan_c = _shadow_frames(scene, x0, margin=1.6)
     tris = cloth.triangles
-    window = _pow2(2 * raster_window(ph, cloth.state.x, tris))
+    window = _pow2(1.1 * raster_window(ph, cloth.state.x, tris))
     spot = [spot_pinhole(p, r, tan_c, shadow_resolution) for p, r in zip(light_pos, light_rot)]
-    shadow_window = _pow2(2 * max(raster_window(sp, cloth.state.x, tris) for sp in spot))
+    shadow_window = _pow2(1.1 * max(raster_window(sp, cloth.state.x, tris) for sp in spot))
+    maps = [ShadowMap(depth=depth_map(sp, cloth.state.x, tris, window=shadow_window), position=sp.origin,
+                      rotation=sp.rotation, tan_cutoff=jnp.asarray(tan_c, dtype)) for sp in spot]
+    shadowed = int(jnp.sum(_near_shadows(maps, pos)))
     gb = rasterize(ph, cloth.state.x, tris, cloth.uv.reshape(-1, 2), window=window)
     count = int(np.sum(np.asarray(gb.hit) > 0))
     steps = max(1, int(round(frame_dt / cloth.dt)))
     return MotionRig(cloth, motion, ph, floor, floor_static, coat, background, mirrored_sky, rays, t_floor, s.direction,
                      env_weight, jnp.asarray(light_pos, dtype), jnp.asarray(light_rot, dtype), float(tan_c), window,
-                     shadow_window, shadow_resolution, _round_up(1.5 * count), _round_up(0.5 * count), steps,
+                     shadow_window, shadow_resolution, _round_up(1.5 * count), _round_up(0.5 * count),
+                     _round_up(1.5 * shadowed), steps,
                      float(near), float(roughness))
 
 
@@ -194,6 +201,28 @@ def _compact(mask: Array, capacity: int) -> tuple[Array, Array, Array]:
     n = flat.shape[0]
     index = jnp.nonzero(flat, size=capacity, fill_value=n)[0].astype(jnp.int32)
     return index, jnp.minimum(index, n - 1), jnp.sum(flat.astype(jnp.int32))
+
+
+PCSS_MAX_RADIUS = 0.2   # uv: `jaxrender.shadows.pcss`'s largest blocker-search and filter radius (its default)
+
+
+def _near_shadows(maps: list[ShadowMap], points: Array) -> Array:
+    """Points that PCSS could find a blocker for: in front of some fire's map, within its largest
+    search radius of the uv box of the texels the garment covers. Everywhere else PCSS returns 1
+    (lit) exactly, so those points need no lookups."""
+    need = jnp.zeros(points.shape[0], bool)
+    for sm in maps:
+        uv, _, front = shadow_uv_distance(sm, points)
+        n = sm.depth.shape[0]
+        covered = jnp.isfinite(sm.depth)
+        idx = jnp.arange(n)
+        rows, cols = jnp.any(covered, axis=1), jnp.any(covered, axis=0)
+        v_lo = jnp.min(jnp.where(rows, idx, n)) / n - PCSS_MAX_RADIUS
+        v_hi = (jnp.max(jnp.where(rows, idx, -1)) + 1) / n + PCSS_MAX_RADIUS
+        u_lo = jnp.min(jnp.where(cols, idx, n)) / n - PCSS_MAX_RADIUS
+        u_hi = (jnp.max(jnp.where(cols, idx, -1)) + 1) / n + PCSS_MAX_RADIUS
+        need = need | (front & (uv[:, 0] >= u_lo) & (uv[:, 0] <= u_hi) & (uv[:, 1] >= v_lo) & (uv[:, 1] <= v_hi))
+    return need
 
 
 def _with_light(a: SurfaceLight, b: SurfaceLight) -> SurfaceLight:
@@ -270,8 +299,12 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
     mirror = eqx.tree_at(lambda s: (s.vertices, s.vertex_normals, s.triangles), scene, (mv, mn, mt))
     mirrored = _mirror_back(garment_points(ph, mirror, gbr, r_gather), up)
 
-    n_g, n_r = points.position.shape[0], mirrored.position.shape[0]
-    vis = fire_visibility(maps, jnp.concatenate([points.position, mirrored.position, rig.floor.position]), rig.near)
+    n_g = points.position.shape[0]
+    vis = fire_visibility(maps, jnp.concatenate([points.position, mirrored.position]), rig.near)
+    # the floor: PCSS only where the garment's shadow can fall, lit (exactly 1) elsewhere
+    f_scatter, f_gather, f_count = _compact(_near_shadows(maps, rig.floor.position), rig.floor_capacity)
+    f_vis = fire_visibility(maps, rig.floor.position[f_gather], rig.near)
+    f_vis = jnp.ones((rig.floor.position.shape[0], len(maps)), dtype).at[f_scatter].set(f_vis, mode="drop")
 
     # light: the same environment samples, the frame's flames
     fires = eqx.tree_at(lambda f: f.emission, scene.fires, emission)
@@ -283,9 +316,9 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
                            fire_light(samples, p.position, v, n_fires))
 
     both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), points, mirrored)
-    lit = shade_garment(scene.mats, both, garment_light(both, vis[:n_g + n_r]), blend=blend)
+    lit = shade_garment(scene.mats, both, garment_light(both, vis), blend=blend)
     g_rad, r_rad = lit[:n_g], lit[n_g:]
-    f_rad = shade_floor(rig.floor, fire_light(samples, rig.floor.position, vis[n_g + n_r:], n_fires)) + rig.floor_static
+    f_rad = shade_floor(rig.floor, fire_light(samples, rig.floor.position, f_vis, n_fires)) + rig.floor_static
 
     # the reflection: mirrored sky, garment and flames, blurred by the roughness, times Fresnel
     beyond = jnp.where(gbr.hit > 0, gbr.distance - rig.t_floor, FAR_BEYOND)
@@ -310,7 +343,8 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
         img = img + flames.hit[q][..., None] * bilinear(emission[q], flames.uv[q], wrap="clamp")
     spots = [spot_pinhole(rig.light_position[q], rig.light_rotation[q], rig.tan_cutoff, rig.shadow_resolution)
              for q in range(n_fires)]
-    counts = FrameCounts(garment, g_count, r_count, jnp.maximum(_extent(ph, x, cloth.triangles), _extent(ph, mv, mt)),
+    view_extent = jnp.maximum(_extent(ph, x, cloth.triangles), _extent(ph, mv, mt))
+    counts = FrameCounts(garment, g_count, r_count, f_count, view_extent,
                          jnp.max(jnp.stack([_extent(sp, x, cloth.triangles) for sp in spots])))
     return img, state, counts
 
@@ -325,6 +359,8 @@ def grown(rig: MotionRig, counts: FrameCounts) -> MotionRig | None:
         changes["capacity"] = _round_up(1.25 * int(counts.garment))
     if int(counts.reflection) > rig.reflection_capacity:
         changes["reflection_capacity"] = _round_up(1.25 * int(counts.reflection))
+    if int(counts.floor) > rig.floor_capacity:
+        changes["floor_capacity"] = _round_up(1.25 * int(counts.floor))
     if float(counts.view_extent) > rig.window:
         changes["window"] = _pow2(float(counts.view_extent))
     if float(counts.shadow_extent) > rig.shadow_window:
