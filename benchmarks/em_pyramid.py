@@ -365,6 +365,9 @@ def equal_cores_speed(size, repeats: int) -> dict:
 
     level0 = synth_maps(jax.random.PRNGKey(0), size)
     d0 = _as_dict(level0)
+    if CORES == 2:  # two worker processes of one BLAS / OpenMP thread each (they inherit this environment)
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+            os.environ[var] = "1"
     pool = multiprocessing.get_context("spawn").Pool(2) if CORES == 2 else None
     try:
         worker_cpu = []  # the pool workers' CPU seconds per call, added to the parent's below

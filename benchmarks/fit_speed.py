@@ -192,6 +192,9 @@ def main(argv=None) -> dict:
     v64 = np.array([0.0, 0.0, 1.0])
     x0s = [start_vector(ratio[i], weight[i], dirs, obs.view_dir) for i in subset]
     peers = {}
+    if CORES == 2:  # two worker processes of one BLAS / OpenMP thread each (they inherit this environment)
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+            os.environ[var] = "1"
     pool = multiprocessing.get_context("spawn").Pool(2) if CORES == 2 else None
     try:
         for kind in ("naive", "varpro"):
