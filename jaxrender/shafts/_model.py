@@ -18,7 +18,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..geometry import bounding_points, cast_rays
 from ..lights import SpotLight
-from ..maths import safe_norm
+from ..maths import dot, safe_norm
 from ._scene import ShaftsScene
 
 S_FLOOR = 1e-6  # smallest light distance used in 1/s^2 (a sample exactly at the light)
@@ -167,7 +167,7 @@ def surface_term(scene: ShaftsScene, points: Float[Array, "*B 3"], normals: Floa
     total = jnp.zeros_like(points)
     for index, light in enumerate(scene.lights):
         I, s, w = light.radiant_intensity(points, quantize_bits=quantize_bits)
-        cos_i = jnp.abs(jnp.sum(w * normals, axis=-1))
+        cos_i = jnp.abs(dot(w, normals))
         s_safe = jnp.maximum(s, S_FLOOR)
         H = visibility(index, points, normals, s)
         scale = cos_i * H * jnp.exp(-sigma * s) / (s_safe * s_safe)
