@@ -345,6 +345,10 @@ def main() -> None:
                          status="met" if max(mem, procs) <= 3 else "missed", figures=r))
     if "paper_projection" in report:
         rows[0]["figures"] = {**rows[0]["figures"], "paper_projection": report["paper_projection"]}
+    previous = Path(__file__).parent / "results" / "capture_scale.json"
+    if previous.is_file() and not args.quick:  # keep the rows of sizes not measured in this run
+        targets = {row["target"] for row in rows}
+        rows += [row for row in json.loads(previous.read_text()).get("rows", []) if row.get("target") not in targets]
     write_results("capture_scale", rows, quick=args.quick)
 
 
