@@ -3,8 +3,9 @@
 inherited), on small sizes. Each test checks that the outputs exist, are readable and are sensible
 (shapes, finite values, the physics they show), not only that the exit code is 0.
 
-The gallery run is the slow one (about 70 s of CPU time for `--quick`; the issue's budget is
-3 minutes on CI's 2 cores); it is not skipped.
+The gallery run is the slow one (`--quick`: about 70 s of CPU time, 4.7-6 min of wall time on
+this shared machine at load 10-18; the issue's budget is 3 minutes on CI's 2 cores); it is not
+skipped.
 """
 
 import json
@@ -84,13 +85,15 @@ def read_rgb(path: Path) -> np.ndarray:
     return np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]  # grey -> RGB
 
 
-def assert_picture(image: np.ndarray, *, min_std: float = 0.02):
-    """Finite, not blank, not one flat colour, not mostly clipped."""
+def assert_picture(image: np.ndarray, *, min_std: float = 0.02, max_clipped: float = 0.2):
+    """Finite, not blank, not one flat colour, at most `max_clipped` of a display image's pixels
+    clipped to white or to black (a stage in the dark or a chart on white needs more)."""
     assert np.all(np.isfinite(image))
     assert image.min() >= 0.0
     assert image.std() > min_std * max(float(image.mean()), 1e-12), "a flat image"
-    if image.max() <= 1.0:  # a display image: less than a fifth of the pixels clipped to white or black
-        assert np.mean(np.all(image >= 0.999, axis=-1)) < 0.2 and np.mean(np.all(image <= 0.001, axis=-1)) < 0.2
+    if image.max() <= 1.0:
+        assert np.mean(np.all(image >= 0.999, axis=-1)) < max_clipped, "mostly white"
+        assert np.mean(np.all(image <= 0.001, axis=-1)) < max_clipped, "mostly black"
 
 
 def exact_total(field) -> float:
@@ -251,6 +254,8 @@ def test_gallery_quick_end_to_end(tmp_path):
                 if path.suffix in (".png", ".exr"):
                     image = read_rgb(path)
                     assert image.ndim == 3 and min(image.shape[:2]) >= 8, (rel, image.shape)
-                    assert_picture(image, min_std=0.01)
+                    # the stage is lit by spot lights in the dark (measured 45 % black pixels), the fit's
+                    # chart has a white background (55 % white): clipped up to 80 %, never all
+                    assert_picture(image, min_std=0.01, max_clipped=0.8)
                 else:
                     assert path.is_file() and path.stat().st_size > 0, rel
