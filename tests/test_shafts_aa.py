@@ -55,7 +55,8 @@ def test_subpixel_grid_is_the_regular_k_by_k_grid():
 def test_every_method_supersamples_and_stays_differentiable(method):
     """spp = 4 is the box mean of the 2x-resolution render (deterministic: twice the same), and
     the gradient through it w.r.t. the fog density is finite and nonzero."""
-    options = {"equiangular": {"samples": 8, "prune": False}, "planes": {"planes": 6, "subplanes": 2, "prune": False},
+    options = {"equiangular": {"samples": 8, "shadow_map": 32, "prune": False},
+               "planes": {"planes": 6, "subplanes": 2, "prune": False},
                "raymarch": {"samples": 16}}[method]
     scene = _scene(width=8, height=6, shadow_map=32)
     fn = jax.jit(lambda s: render(s, method=method, samples_per_pixel=4, **options))

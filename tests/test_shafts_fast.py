@@ -77,17 +77,17 @@ def test_converges_to_raymarch_as_samples_grow(occluded):
     """Against a 1024-sample ray march (shadow rays, exact light-map lookups)."""
     scene = _scene(width=24, height=16, sphere=occluded, light_map=_map() if occluded else None, shadow_map=512)
     ref = _fog(lambda **k: _rm(scene, samples=1024, **k))
-    errs = [_rel(_fog(lambda **k: _eq(scene, samples=n, tile=(8, 8), **k))[0], ref) for n in (4, 8, 32)]
+    errs = [_rel(_fog(lambda **k: _eq(scene, samples=n, prune=False, **k))[0], ref) for n in (4, 8, 32)]
     assert errs[0] > errs[1] > errs[2], errs
     assert errs[2] < (_SHADOW_TOL if occluded else _SMOOTH_TOL), errs
 
 
 def test_float32_matches_float64():
     scene64 = _scene(width=24, height=16, light_map=_map(), shadow_map=128)
-    img64 = np.asarray(_eq(scene64, samples=32))
+    img64 = np.asarray(_eq(scene64, samples=32, shadow_map=128, prune=False))
     with jax.enable_x64(False):
         scene32 = _scene(width=24, height=16, light_map=_map(), shadow_map=128)
-        img32 = render_equiangular(scene32, samples=32)
+        img32 = jax.jit(lambda s: render_equiangular(s, samples=32, shadow_map=128, prune=False))(scene32)
         assert img32.dtype == jnp.float32
         img32 = np.asarray(img32, dtype=np.float64)
     assert np.all(np.isfinite(img32))
@@ -96,21 +96,24 @@ def test_float32_matches_float64():
 
 def test_pruning_changes_nothing():
     scene = _scene(width=20, height=12, light_map=_map(), shadow_map=64)
-    a = _eq(scene, samples=8, tile=(4, 4))
-    b = _eq(scene, samples=8, prune=False)
+    a = _eq(scene, samples=8, shadow_map=64, tile=(4, 4))
+    b = _eq(scene, samples=8, shadow_map=64, prune=False)
     assert float(jnp.max(a)) > 0
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=_EXACT)
 
 
 def test_render_entry_point_dispatches_and_rejects_unknown_method():
     scene = _scene(width=8, height=6, shadow_map=32)
-    np.testing.assert_allclose(np.asarray(render(scene, samples=8)), np.asarray(_eq(scene, samples=8)), atol=_EXACT)
+    got = jax.jit(lambda s: render(s, samples=8, shadow_map=32, prune=False))(scene)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(_eq(scene, samples=8, shadow_map=32, prune=False)),
+                               atol=_EXACT)
     with pytest.raises(ValueError, match="unknown shafts method"):
         render(scene, method="magic")
 
 
 def test_no_retrace_when_light_or_medium_values_change():
-    calls = eqx.debug.assert_max_traces(lambda s: render_equiangular(s, samples=4, tile=(4, 4)), max_traces=1)
+    calls = eqx.debug.assert_max_traces(lambda s: render_equiangular(s, samples=4, shadow_map=32, tile=(4, 4)),
+                                        max_traces=1)
     fn = jax.jit(calls)
     for k, rho, pos in ((0.002, 1.0, (0.0, 4.0, 0.0)), (0.003, 1.2, (0.3, 4.2, 0.1)), (0.004, 0.8, (-0.2, 3.9, 0.0))):
         fn(_scene(width=8, height=6, K=k, rho=rho, position=pos, intensity=(10.0 * rho, 5.0, 3.0),
@@ -118,7 +121,7 @@ def test_no_retrace_when_light_or_medium_values_change():
 
 
 def _loss(p, scene, weights):
-    return jnp.sum(weights * render_equiangular(_with(scene, p), samples=12, prune=False))
+    return jnp.sum(weights * render_equiangular(_with(scene, p), samples=12, shadow_map=64, prune=False))
 
 
 _LOSS = jax.jit(_loss)
