@@ -6,8 +6,8 @@ turn and sway, the hands lifting): each frame continues the Verlet simulation fr
 frame's state (`sims.advance_cloth`, `steps` steps of the cloth's dt), then everything that
 depends on the geometry follows it in the same jitted call (`moving_frame`): the rasterized
 G-buffer and the garment's pixels (compacted into a fixed capacity), mip selection from their uv
-derivatives, the garment's depth map from each fire and PCSS for every garment point and every
-floor point the garment's shadow can reach (`_near_shadows`; PCSS is exactly 1 elsewhere),
+derivatives, the garment's depth map from each fire and PCSS for every garment point and for the
+floor (on a half-resolution grid read back bilinearly: the floor's shadows are soft),
 I_static of the garment (K_env environment samples) and the firelight (K_f samples of the
 frame's flames), and the reflection in the floor.
 
@@ -54,7 +54,7 @@ from jaxrender.fabric import (
 )
 from jaxrender.lights import QuadLights, env_radiance, sample_envmap, sample_quad_lights
 from jaxrender.maths import normalize
-from jaxrender.shadows import ShadowMap, shadow_uv_distance
+from jaxrender.shadows import ShadowMap
 from jaxrender.textures import bilinear
 from sims import BodyMotion, ClothState, DrapedCloth, advance_cloth, cloth_mesh
 
@@ -75,6 +75,9 @@ class MotionRig(eqx.Module):
     motion: BodyMotion
     pinhole: Pinhole                        # the camera's
     floor: FloorPoints                      # every pixel whose ray meets the floor plane
+    floor_uv: Float[Array, "P 2"]           # where each floor pixel reads the half-resolution shadows
+    shadow_points: Float[Array, "S 3"]      # the floor under every pixel of a half-resolution grid
+    shadow_valid: Float[Array, "Hh Wh"]     # 1 where that pixel sees the floor
     floor_static: Float[Array, "P 3"]
     floor_coat: Float[Array, "H W"]         # 1 where the polished stage is, 0 on the gravel and off the floor
     background: Float[Array, "H W 3"]
@@ -91,7 +94,7 @@ class MotionRig(eqx.Module):
     shadow_resolution: int = eqx.field(static=True)
     capacity: int = eqx.field(static=True)
     reflection_capacity: int = eqx.field(static=True)
-    floor_capacity: int = eqx.field(static=True)   # floor points near a fire's shadow of the garment
+
     steps: int = eqx.field(static=True)
     near: float = eqx.field(static=True)
     roughness: float = eqx.field(static=True)
@@ -104,7 +107,6 @@ class FrameCounts(eqx.Module):
     garment_mask: Array
     garment: Array
     reflection: Array
-    floor: Array
     view_extent: Array
     shadow_extent: Array
 
@@ -168,6 +170,17 @@ def prepare_motion(scene: NohScene, cloth: DrapedCloth, motion: BodyMotion, *, k
     lobe = eqx.tree_at(lambda lb: lb.rho_s, texel.lobe0, jnp.zeros_like(texel.lobe0.rho_s))
     texel = eqx.tree_at(lambda t: (t.lobe0, t.lobe1), texel, (lobe, lobe))
     floor = FloorPoints(f_index, pos, -flat_rays, texel)
+    # the floor's soft shadows are computed on a half-resolution grid (2 x 2 pixel blocks) and read
+    # back bilinearly at every floor pixel
+    hh, hw = (h + 1) // 2, (w + 1) // 2
+    sy, sx = jnp.meshgrid(2.0 * jnp.arange(hh, dtype=dtype) + 1.0, 2.0 * jnp.arange(hw, dtype=dtype) + 1.0,
+                          indexing="ij")
+    half_rays = ph.ray(jnp.stack([sx, sy], -1))
+    half_down = half_rays[..., 1] < -1e-6
+    half_t = jnp.where(half_down, -ph.origin[1] / jnp.where(half_down, half_rays[..., 1], -1.0), 0.0)
+    shadow_points = (ph.origin[None, None, :] + half_t[..., None] * half_rays).reshape(-1, 3)
+    fy, fx = jnp.divmod(f_index, w)
+    floor_uv = jnp.stack([(fx.astype(dtype) + 0.5) / (2 * hw), (fy.astype(dtype) + 0.5) / (2 * hh)], -1)
     s = sample_envmap(scene.env, key, k_env)
     env_weight = s.radiance * ((s.direction[:, 1] > 0).astype(s.radiance.dtype) / (k_env * s.pdf))[:, None]
     floor_static = shade_floor(floor, shared_light(s.direction, env_weight, pos.shape[0]))
@@ -182,17 +195,14 @@ def prepare_motion(scene: NohScene, cloth: DrapedCloth, motion: BodyMotion, *, k
     window = _pow2(1.1 * raster_window(ph, cloth.state.x, tris))
     spot = [spot_pinhole(p, r, tan_c, shadow_resolution) for p, r in zip(light_pos, light_rot)]
     shadow_window = _pow2(1.1 * max(raster_window(sp, cloth.state.x, tris) for sp in spot))
-    maps = [ShadowMap(depth=depth_map(sp, cloth.state.x, tris, window=shadow_window), position=sp.origin,
-                      rotation=sp.rotation, tan_cutoff=jnp.asarray(tan_c, dtype)) for sp in spot]
-    shadowed = int(jnp.sum(_near_shadows(maps, pos)))
+
     gb = rasterize(ph, cloth.state.x, tris, cloth.uv.reshape(-1, 2), window=window)
     count = int(np.sum(np.asarray(gb.hit) > 0))
     steps = max(1, int(round(frame_dt / cloth.dt)))
-    return MotionRig(cloth, motion, ph, floor, floor_static, coat, background, mirrored_sky, rays, t_floor, s.direction,
-                     env_weight, jnp.asarray(light_pos, dtype), jnp.asarray(light_rot, dtype), float(tan_c), window,
-                     shadow_window, shadow_resolution, _round_up(1.5 * count), _round_up(0.5 * count),
-                     _round_up(1.5 * shadowed), steps,
-                     float(near), float(roughness))
+    return MotionRig(cloth, motion, ph, floor, floor_uv, shadow_points, half_down.astype(dtype), floor_static, coat,
+                     background, mirrored_sky, rays, t_floor, s.direction, env_weight, jnp.asarray(light_pos, dtype),
+                     jnp.asarray(light_rot, dtype), float(tan_c), window, shadow_window, shadow_resolution,
+                     _round_up(1.15 * count), _round_up(0.4 * count), steps, float(near), float(roughness))
 
 
 def _compact(mask: Array, capacity: int) -> tuple[Array, Array, Array]:
@@ -201,28 +211,6 @@ def _compact(mask: Array, capacity: int) -> tuple[Array, Array, Array]:
     n = flat.shape[0]
     index = jnp.nonzero(flat, size=capacity, fill_value=n)[0].astype(jnp.int32)
     return index, jnp.minimum(index, n - 1), jnp.sum(flat.astype(jnp.int32))
-
-
-PCSS_MAX_RADIUS = 0.2   # uv: `jaxrender.shadows.pcss`'s largest blocker-search and filter radius (its default)
-
-
-def _near_shadows(maps: list[ShadowMap], points: Array) -> Array:
-    """Points that PCSS could find a blocker for: in front of some fire's map, within its largest
-    search radius of the uv box of the texels the garment covers. Everywhere else PCSS returns 1
-    (lit) exactly, so those points need no lookups."""
-    need = jnp.zeros(points.shape[0], bool)
-    for sm in maps:
-        uv, _, front = shadow_uv_distance(sm, points)
-        n = sm.depth.shape[0]
-        covered = jnp.isfinite(sm.depth)
-        idx = jnp.arange(n)
-        rows, cols = jnp.any(covered, axis=1), jnp.any(covered, axis=0)
-        v_lo = jnp.min(jnp.where(rows, idx, n)) / n - PCSS_MAX_RADIUS
-        v_hi = (jnp.max(jnp.where(rows, idx, -1)) + 1) / n + PCSS_MAX_RADIUS
-        u_lo = jnp.min(jnp.where(cols, idx, n)) / n - PCSS_MAX_RADIUS
-        u_hi = (jnp.max(jnp.where(cols, idx, -1)) + 1) / n + PCSS_MAX_RADIUS
-        need = need | (front & (uv[:, 0] >= u_lo) & (uv[:, 0] <= u_hi) & (uv[:, 1] >= v_lo) & (uv[:, 1] <= v_hi))
-    return need
 
 
 def _with_light(a: SurfaceLight, b: SurfaceLight) -> SurfaceLight:
@@ -301,10 +289,10 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
 
     n_g = points.position.shape[0]
     vis = fire_visibility(maps, jnp.concatenate([points.position, mirrored.position]), rig.near)
-    # the floor: PCSS only where the garment's shadow can fall, lit (exactly 1) elsewhere
-    f_scatter, f_gather, f_count = _compact(_near_shadows(maps, rig.floor.position), rig.floor_capacity)
-    f_vis = fire_visibility(maps, rig.floor.position[f_gather], rig.near)
-    f_vis = jnp.ones((rig.floor.position.shape[0], len(maps)), dtype).at[f_scatter].set(f_vis, mode="drop")
+    # the floor's soft shadows: PCSS on the half-resolution grid, bilinear at every floor pixel
+    half = fire_visibility(maps, rig.shadow_points, rig.near).reshape(rig.shadow_valid.shape + (len(maps),))
+    half = jnp.where(rig.shadow_valid[..., None] > 0, half, 1.0)
+    f_vis = bilinear(half, rig.floor_uv)
 
     # light: the same environment samples, the frame's flames
     fires = eqx.tree_at(lambda f: f.emission, scene.fires, emission)
@@ -344,7 +332,7 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
     spots = [spot_pinhole(rig.light_position[q], rig.light_rotation[q], rig.tan_cutoff, rig.shadow_resolution)
              for q in range(n_fires)]
     view_extent = jnp.maximum(_extent(ph, x, cloth.triangles), _extent(ph, mv, mt))
-    counts = FrameCounts(garment, g_count, r_count, f_count, view_extent,
+    counts = FrameCounts(garment, g_count, r_count, view_extent,
                          jnp.max(jnp.stack([_extent(sp, x, cloth.triangles) for sp in spots])))
     return img, state, counts
 
@@ -359,8 +347,6 @@ def grown(rig: MotionRig, counts: FrameCounts) -> MotionRig | None:
         changes["capacity"] = _round_up(1.25 * int(counts.garment))
     if int(counts.reflection) > rig.reflection_capacity:
         changes["reflection_capacity"] = _round_up(1.25 * int(counts.reflection))
-    if int(counts.floor) > rig.floor_capacity:
-        changes["floor_capacity"] = _round_up(1.25 * int(counts.floor))
     if float(counts.view_extent) > rig.window:
         changes["window"] = _pow2(float(counts.view_extent))
     if float(counts.shadow_extent) > rig.shadow_window:
