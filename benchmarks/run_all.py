@@ -36,12 +36,10 @@ def scripts() -> list[Path]:
     return sorted(p for p in HERE.glob("*.py") if not p.name.startswith("_") and p.name != Path(__file__).name)
 
 
-def _fingerprint() -> str:
-    """Hash of RESULTS.md and results/: --quick must leave both untouched."""
-    digest = hashlib.sha256(RESULTS_MD.read_bytes() if RESULTS_MD.exists() else b"")
-    for p in sorted(RESULTS_DIR.glob("*")) if RESULTS_DIR.exists() else []:
-        digest.update(p.name.encode() + p.read_bytes())
-    return digest.hexdigest()
+def _fingerprint() -> dict[str, str]:
+    """Hash of RESULTS.md and of each file in results/: --quick must leave all of them untouched."""
+    paths = [RESULTS_MD] + (sorted(RESULTS_DIR.glob("*")) if RESULTS_DIR.exists() else [])
+    return {str(p.relative_to(HERE)): hashlib.sha256(p.read_bytes()).hexdigest() for p in paths if p.is_file()}
 
 
 def run_script(path: Path, quick: bool, timeout: float) -> tuple[str, int, float, str]:
@@ -141,8 +139,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\n--- {name} (exit {code}) ---\n{tail}", file=sys.stderr)
     print(f"{len(outcomes)} scripts in {time.perf_counter() - start:.0f} s, {len(failed)} failed")
     if args.quick:
-        if _fingerprint() != before:
-            print("run_all --quick: RESULTS.md or results/ changed (a --quick run must write neither)", file=sys.stderr)
+        after = _fingerprint()
+        changed = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k))
+        if changed:  # (in a shared checkout, someone else's edit meanwhile shows up here too)
+            print(f"run_all --quick: {', '.join(changed)} changed during the run (a --quick run must write "
+                  "neither RESULTS.md nor results/)", file=sys.stderr)
             return 1
     elif not failed or args.only:
         rebuild_table()
