@@ -30,7 +30,11 @@ _PINNED = "BENCH_PINNED_CORES"
 def equal_cores(default: int = 2) -> int:
     """Parse --cores from sys.argv (removing it) and set the thread counts of every library to it;
     for 1 core re-execute under `taskset -c 0`. Call before numpy, jax or numba is imported."""
+    import multiprocessing
+
     cores = default
+    if multiprocessing.parent_process() is not None:
+        return cores  # a pool worker re-importing the script: its parent set its thread counts
     if "--cores" in sys.argv:
         i = sys.argv.index("--cores")
         cores = int(sys.argv[i + 1])
