@@ -27,7 +27,6 @@ from jaxtyping import Array, ArrayLike, Float
 from ..geometry import Primitives, cast_rays
 from ..lights import SpotLight
 from ..maths import safe_norm
-from ..textures import nearest
 
 __all__ = ["ShadowMap", "render_shadow_map", "shadow_uv_distance", "shadow_test", "texel_directions"]
 
@@ -89,9 +88,21 @@ def shadow_uv_distance(sm: ShadowMap, points: Float[ArrayLike, "*B 3"]
 
 def shadow_test(sm: ShadowMap, points: Float[ArrayLike, "*B 3"], *, bias: float | Array = 0.002) -> Float[Array, "*B"]:
     """Visibility H (1 lit, 0 shadowed) by the nearest-texel depth compare with `bias` (metres;
-    a scalar or an array broadcastable to the points' batch shape, e.g. slope-scaled)."""
-    uv, dist, front = shadow_uv_distance(sm, points)
-    inside = front & jnp.all((uv >= 0.0) & (uv <= 1.0), axis=-1)
-    depth = nearest(sm.depth[..., None], uv, wrap="clamp")[..., 0]
-    lit = (dist <= depth + bias) | ~inside
-    return jnp.where(lit, 1.0, 0.0).astype(dist.dtype)
+    a scalar or an array broadcastable to the points' batch shape, e.g. slope-scaled); lit outside
+    the map and behind the light. `shadow_uv_distance` + a nearest lookup, written out component by
+    component with a flat gather: several times faster on XLA's CPU backend inside a larger fused
+    frame (minor-axis stacks and reductions over uv and xyz are slow there)."""
+    points = jnp.asarray(points)
+    rel = [points[..., i] - sm.position[i] for i in range(3)]
+    R = sm.rotation
+    x, y, z = (rel[0] * R[i, 0] + rel[1] * R[i, 1] + rel[2] * R[i, 2] for i in range(3))
+    front = z > 1e-9
+    scale = 0.5 / (jnp.where(front, z, 1.0) * sm.tan_cutoff)
+    u, v = 0.5 + x * scale, 0.5 + y * scale
+    inside = front & (u >= 0.0) & (u <= 1.0) & (v >= 0.0) & (v <= 1.0)
+    n = sm.depth.shape[0]
+    col = jnp.clip(jnp.floor(u * n).astype(jnp.int32), 0, n - 1)
+    row = jnp.clip(jnp.floor(v * n).astype(jnp.int32), 0, n - 1)
+    depth = sm.depth.reshape((-1,))[row * n + col]
+    dist = jnp.sqrt(rel[0] * rel[0] + rel[1] * rel[1] + rel[2] * rel[2])
+    return jnp.where((dist <= depth + bias) | ~inside, 1.0, 0.0).astype(points.dtype)

@@ -40,18 +40,15 @@ from jaxtyping import Array, Float
 
 from ..geometry import cast_rays, hit_point
 from ..lights import SpotLight
-from ..maths import atan_nonneg, dot, outer
-from ..shadows import ShadowMap, render_shadow_map
+from ..maths import atan_nonneg, outer
+from ..shadows import render_shadow_map
 from ..textures import bilinear
-from ._model import FAR, S_FLOOR, cone_intervals, light_reach, surface_term
+from ._model import FAR, cone_intervals, light_reach, shadow_map_visibility, surface_term
 from ._raymarch import shadow_ray_visibility
 from ._scene import ShaftsScene
 
-__all__ = ["render_equiangular", "equiangular_scattering", "bake_light_map", "shadow_map_visibility"]
+__all__ = ["render_equiangular", "equiangular_scattering", "bake_light_map"]
 
-_SLOPE_BIAS = 1.5  # surface shadow lookups: extra bias in texel footprints x tan(incidence)
-_MAX_SLOPE = 8.0  # cap on tan(incidence) in that slope-scaled bias
-_NORMAL_OFFSET = 2.0  # surface shadow lookups move this many texel footprints along the normal
 
 _H_MIN = 1e-6  # floor of the ray-to-light distance h (a ray through the light itself)
 _BAKE = 8  # baked light-map texels per light-map texel along each axis
@@ -71,47 +68,6 @@ def _cos_sin(x: Array) -> tuple[Array, Array]:
 def _signed_atan(y: Array, h: Array) -> Array:
     """atan(y / h) for h > 0 (polynomial arctan with arctan's derivative)."""
     return jnp.sign(y) * atan_nonneg(jnp.abs(y) / h)
-
-
-def _depth_test(sm: ShadowMap, pts: Array, bias: Array) -> Array:
-    """`shadow_test` written out component by component with a flat gather: the same nearest-texel
-    compare (lit outside the map and behind the light), several times faster on XLA's CPU backend
-    inside a larger fused frame (minor-axis reductions over uv and xyz are slow there)."""
-    rel = [pts[..., i] - sm.position[i] for i in range(3)]
-    R = sm.rotation
-    x, y, z = (rel[0] * R[i, 0] + rel[1] * R[i, 1] + rel[2] * R[i, 2] for i in range(3))
-    front = z > 1e-9
-    scale = 0.5 / (jnp.where(front, z, 1.0) * sm.tan_cutoff)
-    u, v = 0.5 + x * scale, 0.5 + y * scale
-    inside = front & (u >= 0.0) & (u <= 1.0) & (v >= 0.0) & (v <= 1.0)
-    n = sm.depth.shape[0]
-    col = jnp.clip(jnp.floor(u * n).astype(jnp.int32), 0, n - 1)
-    row = jnp.clip(jnp.floor(v * n).astype(jnp.int32), 0, n - 1)
-    depth = sm.depth.reshape((-1,))[row * n + col]
-    dist = jnp.sqrt(rel[0] * rel[0] + rel[1] * rel[1] + rel[2] * rel[2])
-    return jnp.where((dist <= depth + bias) | ~inside, 1.0, 0.0).astype(pts.dtype)
-
-
-def shadow_map_visibility(scene: ShaftsScene, maps: tuple[ShadowMap, ...]):
-    """visibility(light_index, points, normals, s) -> H at surface points from the lights' shadow
-    maps (the hardware's way, as `render_planes`): the lookup point moves `_NORMAL_OFFSET` texel
-    footprints off the surface toward the light and the bias grows with tan(incidence), against
-    shadow acne on surfaces seen at grazing angles. No gradient (shadow maps carry none)."""
-    bias0 = scene.render.shadow_bias
-
-    def visibility(index, pts, nrm, s):
-        sm, light = maps[index], scene.lights[index]
-        w = (pts - jnp.broadcast_to(light.position, pts.shape)) / jnp.maximum(s, S_FLOOR)[..., None]
-        cos_signed = dot(w, nrm)
-        cos_i = jnp.clip(jnp.abs(cos_signed), 1e-3, 1.0)
-        tan_i = jnp.minimum(jnp.sqrt(jnp.maximum(1.0 - cos_i * cos_i, 0.0)) / cos_i, _MAX_SLOPE)
-        footprint = sm.texel_angle * s
-        facing = jnp.where(cos_signed < 0, 1.0, -1.0).astype(pts.dtype)  # normal side toward the light
-        lookup = pts + nrm * (_NORMAL_OFFSET * footprint * facing)[..., None]
-        bias = bias0 + _SLOPE_BIAS * footprint * tan_i
-        return _depth_test(sm, jax.lax.stop_gradient(lookup), jax.lax.stop_gradient(bias))
-
-    return visibility
 
 
 def bake_light_map(light: SpotLight, *, bake: int = _BAKE, max_size: int = _BAKE_MAX) -> Float[Array, "N N 3"] | None:

@@ -12,6 +12,7 @@ along the light path. All functions are gradient-safe (guarded divisions and squ
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -19,6 +20,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ..geometry import bounding_points, cast_rays
 from ..lights import SpotLight
 from ..maths import dot, safe_norm
+from ..shadows import ShadowMap, shadow_test
 from ._scene import ShaftsScene
 
 S_FLOOR = 1e-6  # smallest light distance used in 1/s^2 (a sample exactly at the light)
@@ -176,3 +178,30 @@ def surface_term(scene: ShaftsScene, points: Float[Array, "*B 3"], normals: Floa
     T = jnp.where(hit, surface_t, 0.0)
     radiance = albedo / jnp.pi * total * jnp.exp(-sigma * T)[..., None]
     return jnp.where(hit[..., None], radiance, 0.0)
+
+
+_SLOPE_BIAS = 1.5  # surface shadow lookups: extra bias in texel footprints x tan(incidence)
+_MAX_SLOPE = 8.0  # cap on tan(incidence) in that slope-scaled bias
+_NORMAL_OFFSET = 2.0  # surface shadow lookups move this many texel footprints along the normal
+
+
+def shadow_map_visibility(scene: ShaftsScene, maps: tuple[ShadowMap, ...]):
+    """visibility(light_index, points, normals, s) -> H at surface points from the lights' shadow
+    maps (the hardware's way, for `surface_term`): the lookup point moves `_NORMAL_OFFSET` texel
+    footprints off the surface toward the light and the bias grows with tan(incidence), against
+    shadow acne on surfaces seen at grazing angles. No gradient (shadow maps carry none)."""
+    bias0 = scene.render.shadow_bias
+
+    def visibility(index, pts, nrm, s):
+        sm, light = maps[index], scene.lights[index]
+        w = (pts - jnp.broadcast_to(light.position, pts.shape)) / jnp.maximum(s, S_FLOOR)[..., None]
+        cos_signed = dot(w, nrm)
+        cos_i = jnp.clip(jnp.abs(cos_signed), 1e-3, 1.0)
+        tan_i = jnp.minimum(jnp.sqrt(jnp.maximum(1.0 - cos_i * cos_i, 0.0)) / cos_i, _MAX_SLOPE)
+        footprint = sm.texel_angle * s
+        facing = jnp.where(cos_signed < 0, 1.0, -1.0).astype(pts.dtype)  # normal side toward the light
+        lookup = pts + nrm * (_NORMAL_OFFSET * footprint * facing)[..., None]
+        bias = bias0 + _SLOPE_BIAS * footprint * tan_i
+        return shadow_test(sm, jax.lax.stop_gradient(lookup), bias=jax.lax.stop_gradient(bias))
+
+    return visibility

@@ -47,18 +47,23 @@ from jaxtyping import Array, Bool, Float, Int
 from ..geometry import cast_rays, hit_point
 from ..lights import SpotLight
 from ..maths import atan_nonneg, outer, safe_norm, sum_short
-from ..shadows import ShadowMap, render_shadow_map, shadow_test
+from ..shadows import ShadowMap, render_shadow_map
 from ..textures import bilinear, quantize
-from ._model import FAR, S_FLOOR, attenuation_h, cone_depth_range, cone_intervals, light_reach, phase_cos, surface_term
+from ._model import (
+    FAR,
+    S_FLOOR,
+    attenuation_h,
+    cone_depth_range,
+    cone_intervals,
+    light_reach,
+    phase_cos,
+    shadow_map_visibility,
+    surface_term,
+)
 from ._raymarch import shadow_ray_visibility
 from ._scene import RenderSettings, ShaftsScene
 
 __all__ = ["render_planes", "shadow_maps"]
-
-_SLOPE_BIAS = 1.5  # surface shadow lookups: extra bias in texel footprints x tan(incidence)
-_MAX_SLOPE = 8.0   # cap on tan(incidence) in that slope-scaled bias
-_NORMAL_OFFSET = 2.0  # surface shadow lookups move this many texel footprints along the normal
-
 
 def shadow_maps(scene: ShaftsScene) -> tuple[ShadowMap, ...]:
     """One shadow map per spot light at `scene.render.shadow_map` resolution."""
@@ -91,22 +96,6 @@ def _scatter_geometry(points: Array, dirs: Array, light_pos: Array) -> tuple[Arr
     cos_a = jnp.sum(w * to_eye, axis=-1)
     sin_a = safe_norm(jnp.cross(w, to_eye))
     return jnp.arctan2(sin_a, cos_a), s
-
-
-def _map_visibility(maps: tuple[ShadowMap, ...], lights: tuple[SpotLight, ...], shadow_bias: float,
-                    index: int, pts: Array, nrm: Array, s: Array) -> Array:
-    """Surface visibility from light `index`'s shadow map, with a normal offset and a
-    slope-scaled bias against shadow acne on surfaces seen at grazing angles."""
-    sm, light = maps[index], lights[index]
-    w = (pts - jnp.broadcast_to(light.position, pts.shape)) / jnp.maximum(s, S_FLOOR)[..., None]
-    cos_signed = jnp.sum(w * nrm, axis=-1)
-    cos_i = jnp.clip(jnp.abs(cos_signed), 1e-3, 1.0)
-    tan_i = jnp.minimum(jnp.sqrt(jnp.maximum(1.0 - cos_i * cos_i, 0.0)) / cos_i, _MAX_SLOPE)
-    footprint = sm.texel_angle * s
-    facing = jnp.where(cos_signed < 0, 1.0, -1.0).astype(pts.dtype)  # normal side toward the light
-    lookup = pts + nrm * (_NORMAL_OFFSET * footprint * facing)[..., None]
-    bias = shadow_bias + _SLOPE_BIAS * footprint * tan_i
-    return shadow_test(sm, jax.lax.stop_gradient(lookup), bias=jax.lax.stop_gradient(bias))
 
 
 class PhaseTables(eqx.Module):
@@ -469,7 +458,7 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
     cam = scene.camera
     maps = shadow_maps(scene)
     if surface_shadows == "map":
-        visibility = functools.partial(_map_visibility, maps, tuple(scene.lights), scene.render.shadow_bias)
+        visibility = shadow_map_visibility(scene, maps)
     elif surface_shadows == "rays":
         visibility = shadow_ray_visibility(scene)
     else:
