@@ -31,7 +31,7 @@ def procedural_btf(kind: str, size: int = 32, *, key: PRNGKeyArray | None = None
         t = synth_maps(key, (size, size))
         # a warmer, gold-dominated brocade: make the silk ground a deep red
         gold = t.lobe0.rho_s[..., 0] > 1.0
-        red = jnp.asarray([0.35, 0.03, 0.03], dtype=dtype)
+        red = jnp.asarray([[[0.35, 0.03, 0.03]]], dtype=dtype)
         rho_d = jnp.where(gold[..., None], t.rho_d,
                           red * (t.rho_d[..., :1] / jnp.maximum(jnp.mean(t.rho_d[..., :1]), 1e-6)))
         return BTFTexel.single(rho_d.astype(dtype), t.lobe0.rho_s.astype(dtype), t.lobe0.normal.astype(dtype),

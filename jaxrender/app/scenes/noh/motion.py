@@ -123,7 +123,7 @@ def _extent(ph: Pinhole, vertices: Array, triangles: Array) -> Array:
     """The largest projected bounding box of a triangle, in pixels (what `raster_window` measures)."""
     px, _ = ph.project(vertices)
     px = px[triangles]
-    size = jnp.asarray([ph.width, ph.height], px.dtype)
+    size = jnp.asarray([[ph.width, ph.height]], px.dtype)
     lo = jnp.clip(jnp.floor(jnp.min(px, axis=1) - 0.5), 0, size)
     hi = jnp.clip(jnp.ceil(jnp.max(px, axis=1) + 0.5), 0, size)
     return jnp.max(hi - lo)

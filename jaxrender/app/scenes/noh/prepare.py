@@ -27,7 +27,7 @@ from jaxrender.fabric import (
     tangent_frames,
 )
 from jaxrender.lights import env_radiance, sample_envmap
-from jaxrender.maths import normalize
+from jaxrender.maths import dot, normalize
 from jaxrender.shadows import ShadowMap, pcss
 
 from .mask import LABELS
@@ -99,7 +99,7 @@ def fire_shadow_maps(scene: NohScene, resolution: int) -> list[ShadowMap]:
         zaxis = normalize(target - pos)
         xaxis = normalize(jnp.cross(jnp.asarray([0.0, 1.0, 0.0], dtype=pos.dtype), zaxis))
         rot = jnp.stack([xaxis, jnp.cross(zaxis, xaxis), zaxis])
-        local = (corners - pos) @ rot.T
+        local = (corners - pos[None, :]) @ rot.T
         tan_c = max(tan_c, float(jnp.max(jnp.abs(local[:, :2]) / local[:, 2:3])) * 1.1)
         frames.append((pos, rot))
     phs = [spot_pinhole(pos, rot, tan_c, resolution) for pos, rot in frames]
@@ -175,12 +175,11 @@ def flame_billboards(scene: NohScene, ph: Pinhole, view: ViewSurfaces) -> FlameB
     uvs, hits = [], []
     for q in range(fl.center.shape[0]):  # four fires: unrolled
         nrm = normalize(jnp.cross(fl.u[q], fl.v[q]))
-        denom = jnp.sum(rays * nrm, -1)
-        safe = jnp.where(jnp.abs(denom) > 1e-9, denom, 1e-9)
-        t = jnp.sum((fl.center[q] - eye) * nrm) / safe
-        p = eye + t[..., None] * rays - fl.center[q]
-        a = jnp.sum(p * fl.u[q], -1) / jnp.sum(fl.u[q] ** 2)
-        b = jnp.sum(p * fl.v[q], -1) / jnp.sum(fl.v[q] ** 2)
+        safe = jnp.where(jnp.abs(dot(rays, nrm)) > 1e-9, dot(rays, nrm), 1e-9)
+        t = dot(fl.center[q] - eye, nrm) / safe
+        p = t[..., None] * rays + jnp.reshape(eye - fl.center[q], (1, 1, 3))   # hit point relative to the centre
+        a = dot(p, fl.u[q]) / dot(fl.u[q], fl.u[q])
+        b = dot(p, fl.v[q]) / dot(fl.v[q], fl.v[q])
         inside = (jnp.abs(a) <= 1) & (jnp.abs(b) <= 1) & (t > 0)
         hits.append((inside & (t < surface_t)).astype(rays.dtype))
         uvs.append(jnp.stack([(a + 1) / 2, (1 - b) / 2], -1))
