@@ -39,8 +39,13 @@ from jaxrender.geometry import cast_rays, hit_point  # noqa: E402
 from jaxrender.io import write_image  # noqa: E402
 from jaxrender.shadows import render_shadow_map  # noqa: E402
 from jaxrender.shafts import render_equiangular, render_planes, render_raymarch  # noqa: E402
-from jaxrender.shafts._model import shadow_map_visibility  # noqa: E402
-from jaxrender.shafts._model import FAR, cone_intervals, light_reach, surface_term  # noqa: E402
+from jaxrender.shafts._model import (  # noqa: E402
+    FAR,
+    cone_intervals,
+    light_reach,
+    shadow_map_visibility,  # noqa: E402
+    surface_term,
+)
 
 TARGET = 0.02
 FIGURES = HERE / "figures"
