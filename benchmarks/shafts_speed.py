@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from _timing import timed  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
+
 from jaxrender.app.scenes import load_shafts_scene  # noqa: E402
 from jaxrender.shafts import render_planes, render_raymarch  # noqa: E402
 
@@ -96,7 +97,8 @@ def main(argv=None) -> int:
     # every count up to 8 (8 samples already give ~1.4 %): the ray march at its cheapest 2 % count
     for samples in (4, 5, 6, 7, 8, 10, 12, 16, 24, 32, 48, 64, 96, 128):
         # returns (image, scattering): the whole frame is computed and timed
-        fn = jax.jit(lambda s, n=samples: (lambda out: (out[0], out[1][1]))(render_raymarch(s, samples=n, return_parts=True)))
+        fn = jax.jit(lambda s, n=samples: (lambda out: (out[0], out[1][1]))(
+            render_raymarch(s, samples=n, return_parts=True)))
         _, t = timed(lambda: fn(small), 3)
         err = rel_rms(fn(small)[1], ref)
         march.append((samples, err, t))
@@ -105,7 +107,8 @@ def main(argv=None) -> int:
             break
     plane_runs = []
     for g_pp in (False, True):  # the paper's 15x10 texture-coordinate mesh, then g per pixel
-        for n, m in ((4, 2), (6, 2), (8, 2), (6, 3), (8, 3), (6, 4), (8, 4), (12, 3), (16, 4), (24, 6), (30, 6), (48, 8)):
+        for n, m in ((4, 2), (6, 2), (8, 2), (6, 3), (8, 3), (6, 4), (8, 4), (12, 3), (16, 4), (24, 6), (30, 6),
+                     (48, 8)):
             fn = jax.jit(lambda s, n=n, m=m, g_pp=g_pp: (lambda out: (out[0], sum(out[1][1])))(
                 render_planes(s, planes=n, subplanes=m, g_per_pixel=g_pp, tables=not g_pp, return_parts=True)))
             _, t = timed(lambda: fn(small), 3)
@@ -121,7 +124,8 @@ def main(argv=None) -> int:
     if m_ok and p_ok:
         speedup = m_ok[0][2] / p_ok[0][2]
         verdict = f"{speedup:.2f}x: " + ("met" if speedup >= 5 else "MISSED")
-        rows.append((f"ray march, {ew}x{eh}, {m_ok[0][0]} samples (err {m_ok[0][1]:.4f})", float("nan"), m_ok[0][2], "", ""))
+        rows.append((f"ray march, {ew}x{eh}, {m_ok[0][0]} samples (err {m_ok[0][1]:.4f})", float("nan"), m_ok[0][2],
+                     "", ""))
         rows.append((f"planes, {ew}x{eh}, {p_ok[0][0]} (err {p_ok[0][1]:.4f})", float("nan"), p_ok[0][2],
                      ">= 5x faster at 2 % error", verdict))
     else:
@@ -129,7 +133,8 @@ def main(argv=None) -> int:
                      "2 % not reached by " + ("planes" if not p_ok else "ray march")))
 
     header = "| case | compile (s) | time (s) | target | result |\n|---|---|---|---|---|"
-    lines = [header] + [f"| {a} | {'' if np.isnan(b) else f'{b:.1f}'} | {c:.4f} | {d} | {e} |" for a, b, c, d, e in rows]
+    lines = [header] + [f"| {a} | {'' if np.isnan(b) else f'{b:.1f}'} | {c:.4f} | {d} | {e} |"
+                        for a, b, c, d, e in rows]
     table = "\n".join(lines)
     sweep = ["", "Equal-error sweep (relative RMS of the in-scattered light vs. a 512-sample ray march; "
              "median time of the whole frame):", "",
@@ -140,7 +145,8 @@ def main(argv=None) -> int:
     print()
     print(text)
     if not args.quick and not args.no_results:
-        machine = f"{platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} ({jax.default_backend()}), float32"
+        machine = (f"{platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} "
+                   f"({jax.default_backend()}), float32")
         write_results(f"{SECTION}\n\nCommand: `python benchmarks/shafts_speed.py` ({machine}; load average "
                       f"{load:.1f} at the start: other jobs on the 2 cores inflate the times). Reading and history "
                       f"in the next section.\n\n{text}\n")
@@ -154,7 +160,8 @@ def write_results(block: str) -> None:
     heading = "## Light shafts: speed vs. ray march and Mitsuba 3"
     if SECTION in text:
         start = text.index(SECTION)
-        nxt = [i for i in (text.find("\n### ", start + 1), text.find("\n## ", start + 1), text.find("\n<!--", start + 1))
+        nxt = [i for i in (text.find("\n### ", start + 1), text.find("\n## ", start + 1),
+                           text.find("\n<!--", start + 1))
                if i != -1]
         end = min(nxt) + 1 if nxt else len(text)
         text = text[:start] + block + "\n" + text[end:]

@@ -89,12 +89,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxrender.maths import normalize, sum_short
 from jaxrender.brdf import SIGMA_FLOOR, BTFTexel, Lobe
+from jaxrender.maths import normalize, sum_short
 
 __all__ = ["GaussianMixture", "EMInfo", "em_fit", "weighted_log_likelihood", "moment_match", "lobe_slope_nodes",
-           "em_texel", "em_texels", "moment_matched_texel", "moment_matched_texels", "mip_texel", "gather_children", "em_downsample",
-           "ONE_LOBE_TOLERANCE", "TWO_LOBE_GAIN", "DEFAULT_ORDER", "DEFAULT_ITERATIONS"]
+           "em_texel", "em_texels", "moment_matched_texel", "moment_matched_texels", "mip_texel", "gather_children",
+           "em_downsample", "ONE_LOBE_TOLERANCE", "TWO_LOBE_GAIN", "DEFAULT_ORDER", "DEFAULT_ITERATIONS"]
 
 ONE_LOBE_TOLERANCE = 0.01  # relative ISE of the one-lobe summary above which a second lobe is considered
 TWO_LOBE_GAIN = 0.5        # the two-lobe fit must at least halve the one-lobe ISE
@@ -313,7 +313,8 @@ def _hermite_grid(order: int, dtype) -> tuple[Array, Array, Array]:
     nodes, weights = np.polynomial.hermite.hermgauss(order)
     a, b = np.meshgrid(nodes, nodes, indexing="ij")
     q = np.outer(weights, weights) / math.pi
-    return (jnp.asarray(a.ravel(), dtype=dtype), jnp.asarray(b.ravel(), dtype=dtype), jnp.asarray(q.ravel(), dtype=dtype))
+    return (jnp.asarray(a.ravel(), dtype=dtype), jnp.asarray(b.ravel(), dtype=dtype),
+            jnp.asarray(q.ravel(), dtype=dtype))
 
 
 def _lobe_nodes(normal, sigma_x, sigma_y, order):
@@ -333,10 +334,12 @@ def _lobe_nodes(normal, sigma_x, sigma_y, order):
     return h, x0, x1, q
 
 
-def lobe_slope_nodes(lobe: Lobe, *, order: int = DEFAULT_ORDER) -> tuple[Float[Array, "Q 3"], Float[Array, "Q 2"], Float[Array, " Q"]]:
+def lobe_slope_nodes(lobe: Lobe, *,
+                     order: int = DEFAULT_ORDER) -> tuple[Float[Array, "Q 3"], Float[Array, "Q 2"], Float[Array, " Q"]]:
     """Gauss-Hermite nodes of one lobe's D: (half vectors h, sample-frame slopes x, weights summing to 1)."""
     col = lambda a: jnp.reshape(a, (1, 1))  # noqa: E731
-    h, x0, x1, q = _lobe_nodes(tuple(col(lobe.normal[i]) for i in range(3)), col(lobe.sigma_x), col(lobe.sigma_y), order)
+    h, x0, x1, q = _lobe_nodes(tuple(col(lobe.normal[i]) for i in range(3)), col(lobe.sigma_x), col(lobe.sigma_y),
+                               order)
     return jnp.stack([c[0, :, 0] for c in h], axis=-1), jnp.stack([x0[0, :, 0], x1[0, :, 0]], axis=-1), q
 
 
@@ -659,8 +662,8 @@ def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: in
     h, w = level.weight.shape
     hh, ww = -(-h // 2), -(-w // 2)
     one_lobe = not bool(jnp.any(level.weight))   # e.g. level 0 of a fit: the cheaper kernel
-    pieces = [_em_blocks_jit(lobes, rho_d, order, iterations, tol, 2)
-              for lobes, rho_d in _split_level(level, _chunk_size(hh * ww, chunk), one_lobe)]   # dispatched asynchronously
+    pieces = [_em_blocks_jit(lobes, rho_d, order, iterations, tol, 2)   # dispatched asynchronously
+              for lobes, rho_d in _split_level(level, _chunk_size(hh * ww, chunk), one_lobe)]
     return _merge_level(tuple(pieces), hh, ww)
 
 

@@ -77,7 +77,7 @@ def _expand(exposures: Array, ndim: int) -> Array:
     return jnp.reshape(exposures, exposures.shape + (1,) * (ndim - 1))
 
 
-def exposure_weights(codes: Float[ArrayLike, "E ..."], exposures_s: Float[ArrayLike, "E"]) -> Float[Array, "E ..."]:
+def exposure_weights(codes: Float[ArrayLike, "E ..."], exposures_s: Float[ArrayLike, " E"]) -> Float[Array, "E ..."]:
     """w(c, t) = hat(c) * t (module docstring); 0 at and beyond the saturation and dark codes."""
     codes = jnp.asarray(codes)
     t = _expand(jnp.asarray(exposures_s, dtype=codes.dtype), codes.ndim)
@@ -90,7 +90,7 @@ def _hat(codes: Array) -> Array:
 
 
 @functools.partial(jax.jit, static_argnames=("response",))
-def merge_exposures(codes: Float[ArrayLike, "E H W 3"], exposures_s: Float[ArrayLike, "E"],
+def merge_exposures(codes: Float[ArrayLike, "E H W 3"], exposures_s: Float[ArrayLike, " E"],
                     response: str) -> tuple[Float[Array, "H W 3"], Bool[Array, "H W 3"], Bool[Array, "H W 3"]]:
     """Merge an exposure bracket into linear radiance (code units of full scale per second).
 
@@ -123,9 +123,10 @@ def merge_exposures(codes: Float[ArrayLike, "E H W 3"], exposures_s: Float[Array
     return radiance, saturated, dark
 
 
-def observe(codes: Float[ArrayLike, "B E H W 3"], exposures_s: Float[ArrayLike, "E"],
+def observe(codes: Float[ArrayLike, "B E H W 3"], exposures_s: Float[ArrayLike, " E"],
             white_codes: Float[ArrayLike, "E H W 3"], reflectance: Float[ArrayLike, "3"], *,
-            response: str) -> tuple[Float[Array, "H W B 3"], Bool[Array, "H W B"], Bool[Array, "H W B"], Bool[Array, "H W B"]]:
+            response: str) -> tuple[Float[Array, "H W B 3"], Bool[Array, "H W B"], Bool[Array, "H W B"],
+                                    Bool[Array, "H W B"]]:
     """Observations of a batch of B lights: (ratio, valid, any channel saturated, any dark), `H W B`
     first (the layout of `Observations`). Jitted inside `_observe_jit`."""
     return _observe_jit(jnp.asarray(codes), jnp.asarray(exposures_s), jnp.asarray(white_codes),

@@ -61,7 +61,8 @@ class Camera(eqx.Module):
         offsets = (jnp.arange(supersample, dtype=float) + 0.5) / supersample
         oy, ox = jnp.meshgrid(offsets, offsets, indexing="ij")
         sub = jnp.stack([ox.ravel(), oy.ravel()], axis=-1)
-        rows, cols = jnp.meshgrid(jnp.arange(self.height, dtype=float), jnp.arange(self.width, dtype=float), indexing="ij")
+        rows, cols = jnp.meshgrid(jnp.arange(self.height, dtype=float), jnp.arange(self.width, dtype=float),
+                                  indexing="ij")
         base = jnp.stack([cols, rows], axis=-1)
         return base[:, :, None, :] + sub[None, None, :, :]
 

@@ -182,7 +182,8 @@ def test_gauss_hermite_nodes_reproduce_the_slope_distribution():
     s = np.linspace(-1.5, 1.5, 401)
     p, qq = np.meshgrid(s, s, indexing="ij")
     h = np.stack([p, qq, np.ones_like(p)], -1) / np.sqrt(p**2 + qq**2 + 1)[..., None]
-    d = np.asarray(jax.jit(jax.vmap(lambda hh: slope_distribution(hh, lobe)))(jnp.asarray(h.reshape(-1, 3)))).reshape(p.shape)
+    d = np.asarray(jax.jit(jax.vmap(lambda hh: slope_distribution(hh, lobe)))(
+        jnp.asarray(h.reshape(-1, 3)))).reshape(p.shape)
     mass = d.sum()
     np.testing.assert_allclose(mass * (s[1] - s[0]) ** 2, np.pi * 0.2 * 0.07, rtol=1e-6)
     for axis, grid in ((0, p), (1, qq)):
@@ -191,7 +192,8 @@ def test_gauss_hermite_nodes_reproduce_the_slope_distribution():
         assert abs(float(np.sum(q * x[:, axis]))) < 1e-12
 
 
-def _child(tilt_deg, azimuth_deg=0.0, *, sx=0.15, sy=0.1, rho_s=(0.6, 0.5, 0.4), rho_d=(0.1, 0.2, 0.3), dtype=jnp.float64):
+def _child(tilt_deg, azimuth_deg=0.0, *, sx=0.15, sy=0.1, rho_s=(0.6, 0.5, 0.4), rho_d=(0.1, 0.2, 0.3),
+           dtype=jnp.float64):
     t, a = np.radians(tilt_deg), np.radians(azimuth_deg)
     n = np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)])
     return BTFTexel.single(jnp.asarray(rho_d, dtype), jnp.asarray(rho_s, dtype), jnp.asarray(n, dtype),
@@ -204,7 +206,8 @@ def _stack(children):
 
 def _specular_energy(texel):
     e = lambda lobe: np.pi * lobe.sigma_x * lobe.sigma_y  # noqa: E731
-    return ((1 - texel.weight) * e(texel.lobe0))[..., None] * texel.lobe0.rho_s + (texel.weight * e(texel.lobe1))[..., None] * texel.lobe1.rho_s
+    return (((1 - texel.weight) * e(texel.lobe0))[..., None] * texel.lobe0.rho_s
+            + (texel.weight * e(texel.lobe1))[..., None] * texel.lobe1.rho_s)
 
 
 em_jit = jax.jit(em_texel)
@@ -248,7 +251,8 @@ def test_two_directions_give_two_lobes_ordered_by_weight(tilts, weight):
 
 
 def test_specular_energy_is_conserved():
-    children = _stack([_child(20, 10), _child(-15, 80, sx=0.3), _child(5, 0, rho_s=(0.1, 0.9, 0.2)), _child(0, 0, sx=0.05)])
+    children = _stack([_child(20, 10), _child(-15, 80, sx=0.3), _child(5, 0, rho_s=(0.1, 0.9, 0.2)),
+                       _child(0, 0, sx=0.05)])
     expected = np.mean(_specular_energy(children), axis=0)
     for texel in (_em_one(children)[0], jax.tree.map(lambda a: a[0], moment_matched_texels(_stack([children] * 8)))):
         np.testing.assert_allclose(_specular_energy(texel), expected, rtol=1e-9)
@@ -277,7 +281,8 @@ def test_vmap_equals_loop_and_float32():
     for i, children in enumerate(distinct):
         single, info = em_jit(children)
         for a, b in zip(jax.tree.leaves((single, info)), jax.tree.leaves((vmapped, vinfo))):
-            np.testing.assert_allclose(np.asarray(a, dtype=float), np.asarray(b[i], dtype=float), rtol=1e-10, atol=1e-12)
+            np.testing.assert_allclose(np.asarray(a, dtype=float), np.asarray(b[i], dtype=float), rtol=1e-10,
+                                       atol=1e-12)
     # float32, in the batch of 16 texels that build_pyramid compiles for small levels.
     as32 = jax.tree.map(lambda a: a.astype(jnp.float32), _stack(batch * 2))
     t32, _ = em_texels(as32)

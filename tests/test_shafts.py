@@ -28,7 +28,8 @@ def _scene(*, width=W, height=H, sphere=True, light_map=None, eye=(0.0, 1.5, 6.0
     light = SpotLight(position, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 20.0, 15.0, intensity, light_map)
     spheres = Spheres([[0.0, 1.0, 0.0]], [0.5], [[0.8, 0.7, 0.6]]) if sphere else None
     floor = Quads([[0.0, 0.0, 0.0]], [[3.0, 0.0, 0.0]], [[0.0, 0.0, -3.0]], [[0.5, 0.5, 0.5]])
-    render = RenderSettings(shadow_map=shadow_map, s_min=jnp.asarray(0.5), s_max=jnp.asarray(10.0), t_max=jnp.asarray(12.0))
+    render = RenderSettings(shadow_map=shadow_map, s_min=jnp.asarray(0.5), s_max=jnp.asarray(10.0),
+                            t_max=jnp.asarray(12.0))
     return ShaftsScene(cam, Medium(rho, kappa, K), [light], spheres, floor, render)
 
 

@@ -24,7 +24,6 @@ from pathlib import Path
 import equinox as eqx
 import numpy as np
 import pytest
-
 from mitsuba_scene import block_means, render_mitsuba
 
 # -- scene ---------------------------------------------------------------------------------------

@@ -32,8 +32,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ..maths import dot, normalize
 from ..brdf import BTFTexel, lobe_reflectance, reflectance
+from ..maths import dot, normalize
 
 __all__ = ["MaterialSet", "stack_materials", "mip_level", "lookup_texels", "shade_samples", "shade_single_lobe",
            "shade_fabric", "tangent_frames"]
@@ -45,7 +45,7 @@ class MaterialSet(eqx.Module):
     table: BTFTexel                 # N texels
     offsets: Int[Array, "L M"]      # first texel of level l of material m
     sizes: Int[Array, "L M 2"]      # (rows, cols) of level l of material m
-    levels: Int[Array, "M"]         # number of real levels of material m
+    levels: Int[Array, " M"]        # number of real levels of material m
 
     @property
     def count(self) -> int:
@@ -61,7 +61,8 @@ def stack_materials(pyramids: list[list[BTFTexel]]) -> MaterialSet:
     if not pyramids or any(len(p) == 0 for p in pyramids):
         raise ValueError("every material needs at least one level")
     n_levels = max(len(p) for p in pyramids)
-    parts, offsets, sizes = [], np.zeros((n_levels, len(pyramids)), np.int32), np.zeros((n_levels, len(pyramids), 2), np.int32)
+    parts, offsets, sizes = ([], np.zeros((n_levels, len(pyramids)), np.int32),
+                             np.zeros((n_levels, len(pyramids), 2), np.int32))
     start = 0
     first = {}
     for m, pyr in enumerate(pyramids):
@@ -90,8 +91,8 @@ def mip_level(duv_dx: Float[ArrayLike, "... 2"], duv_dy: Float[ArrayLike, "... 2
     return 0.5 * jnp.log2(rho2)
 
 
-def lookup_texels(mats: MaterialSet, material: Int[Array, "N"], uv: Float[Array, "N 2"],
-                  level: Int[Array, "N"]) -> BTFTexel:
+def lookup_texels(mats: MaterialSet, material: Int[Array, " N"], uv: Float[Array, "N 2"],
+                  level: Int[Array, " N"]) -> BTFTexel:
     """Nearest texel (repeat wrap) of integer `level` of each pixel's material."""
     level = jnp.clip(level, 0, mats.offsets.shape[0] - 1)
     off = mats.offsets[level, material]
@@ -147,10 +148,10 @@ def shade_single_lobe(texel: BTFTexel, frame: Float[Array, "N 3 3"], wo: Float[A
     return jnp.sum(jnp.where(geometric[..., None], r, 0.0) * weight, axis=1) / jnp.pi
 
 
-def shade_fabric(mats: MaterialSet, material: Int[Array, "N"], uv: Float[Array, "N 2"],
+def shade_fabric(mats: MaterialSet, material: Int[Array, " N"], uv: Float[Array, "N 2"],
                  duv_dx: Float[Array, "N 2"], duv_dy: Float[Array, "N 2"], frame: Float[Array, "N 3 3"],
                  wo: Float[Array, "N 3"], wi: Float[Array, "N K 3"], weight: Float[Array, "N K 3"], *,
-                 diffuse_override: Float[Array, "N 3"] | None = None, use_override: Float[Array, "N"] | None = None,
+                 diffuse_override: Float[Array, "N 3"] | None = None, use_override: Float[Array, " N"] | None = None,
                  blend: str = "shading") -> Float[Array, "N 3"]:
     """Radiance toward `wo` of fabric pixels lit by K samples; mip level from the uv derivatives.
 

@@ -1,17 +1,8 @@
 """File I/O at the edge of the toolkit: EXR (OpenEXR), PNG (scikit-image), BTF directories,
 colour transfer functions and tone mapping, atomic writes, and the user-input error type."""
 
-from ._atomic import atomic_path as atomic_path
-from ._color import linear_to_srgb as linear_to_srgb
-from ._color import luminance as luminance
-from ._color import srgb_to_linear as srgb_to_linear
-from ._color import tonemap as tonemap
 from ..errors import InputError as InputError
-from ._images import read_exr as read_exr
-from ._images import read_image as read_image
-from ._images import write_exr as write_exr
-from ._images import write_image as write_image
-from ._images import write_png as write_png
+from ._atomic import atomic_path as atomic_path
 from ._btf import BTF_FORMAT as BTF_FORMAT
 from ._btf import BTF_VERSION as BTF_VERSION
 from ._btf import LEVEL0_CHANNELS as LEVEL0_CHANNELS
@@ -22,3 +13,12 @@ from ._btf import read_btf as read_btf
 from ._btf import write_btf as write_btf
 from ._btf import write_btf_levels as write_btf_levels
 from ._btf import write_btf_previews as write_btf_previews
+from ._color import linear_to_srgb as linear_to_srgb
+from ._color import luminance as luminance
+from ._color import srgb_to_linear as srgb_to_linear
+from ._color import tonemap as tonemap
+from ._images import read_exr as read_exr
+from ._images import read_image as read_image
+from ._images import write_exr as write_exr
+from ._images import write_image as write_image
+from ._images import write_png as write_png

@@ -82,8 +82,9 @@ def _march(z: Array, o: Array, dirs: Array, t_a: Array, t_b: Array, spacing: flo
     return t_hi, found
 
 
-def ray_cast_heightfield(z: Float[ArrayLike, "Ny Nx"], origin: Float[ArrayLike, "3"], dirs: Float[ArrayLike, "... 3"], *,
-                         spacing: float = 1.0, n_steps: int = 96, n_refine: int = 10) -> tuple[Float[Array, "..."], Array]:
+def ray_cast_heightfield(z: Float[ArrayLike, "Ny Nx"], origin: Float[ArrayLike, "3"],
+                         dirs: Float[ArrayLike, "... 3"], *, spacing: float = 1.0, n_steps: int = 96,
+                         n_refine: int = 10) -> tuple[Float[Array, "..."], Array]:
     """Distance along each ray to the first hit of the triangulated heightfield, and a hit mask.
 
     The ray is clipped to the surface's bounding box [0, (Nx-1) s] x [0, (Ny-1) s] x [zmin, zmax];

@@ -22,8 +22,8 @@ class DustParticles(eqx.Module):
     optical depth through a cloud's centre."""
 
     position: Float[Array, "P 3"]
-    radius: Float[Array, "P"]
-    opacity: Float[Array, "P"]
+    radius: Float[Array, " P"]
+    opacity: Float[Array, " P"]
 
 
 def dust_particles(key: Array, maps, ripple_height: Float[Array, "R R"], *, count: int = 600, steps: int = 20,
@@ -70,7 +70,7 @@ def billboard_alpha(rho: Array, opacity: Array) -> Array:
 
 def composite_billboards(image: Float[Array, "H W 3"], depth: Float[Array, "H W"], camera: Camera,
                          particles: DustParticles, sun: Sun, sky_irradiance: Float[Array, "3"], *,
-                         sunlit: Float[Array, "P"] | None = None, max_radius_px: int = 16) -> Float[Array, "H W 3"]:
+                         sunlit: Float[Array, " P"] | None = None, max_radius_px: int = 16) -> Float[Array, "H W 3"]:
     """Alpha-blend the clouds over `image`, farthest first (sorted by depth, then a scan), each
     hidden where the scene at that pixel (`depth`, distance along the ray) is nearer than it.
     Billboards are squares facing the camera; their screen radius is clamped to

@@ -20,7 +20,8 @@ def quad_corners(z: Float[ArrayLike, "Ny Nx"], *, spacing: float = 1.0) -> Float
     """World positions of the grid vertices: (i s, j s, z[j, i])."""
     z = jnp.asarray(z)
     ny, nx = z.shape
-    gy, gx = jnp.meshgrid(jnp.arange(ny, dtype=z.dtype) * spacing, jnp.arange(nx, dtype=z.dtype) * spacing, indexing="ij")
+    gy, gx = jnp.meshgrid(jnp.arange(ny, dtype=z.dtype) * spacing, jnp.arange(nx, dtype=z.dtype) * spacing,
+                          indexing="ij")
     return jnp.stack([gx, gy, z], axis=-1)
 
 
@@ -49,13 +50,16 @@ def quad_visibility(z: Float[ArrayLike, "Ny Nx"], camera: Camera, *, spacing: fl
         d4 = _corners4(depth)
         all_in_front = jnp.all(jnp.stack([d > 0 for d in d4]), axis=0)
         all_behind = jnp.all(jnp.stack([d <= 0 for d in d4]), axis=0)
-        outside = (jnp.all(jnp.stack([c < 0 for c in c4]), axis=0) | jnp.all(jnp.stack([c > camera.width for c in c4]), axis=0)
-                   | jnp.all(jnp.stack([r < 0 for r in r4]), axis=0) | jnp.all(jnp.stack([r > camera.height for r in r4]), axis=0))
+        outside = (jnp.all(jnp.stack([c < 0 for c in c4]), axis=0)
+                   | jnp.all(jnp.stack([c > camera.width for c in c4]), axis=0)
+                   | jnp.all(jnp.stack([r < 0 for r in r4]), axis=0)
+                   | jnp.all(jnp.stack([r > camera.height for r in r4]), axis=0))
         visible &= ~all_behind & ~(all_in_front & outside)
     return visible
 
 
-def quad_screen_area(z: Float[ArrayLike, "Ny Nx"], camera: Camera, *, spacing: float = 1.0) -> Float[Array, "Ny-1 Nx-1"]:
+def quad_screen_area(z: Float[ArrayLike, "Ny Nx"], camera: Camera, *,
+                     spacing: float = 1.0) -> Float[Array, "Ny-1 Nx-1"]:
     """Projected area of each quad in pixels (shoelace over its 4 projected corners); +inf for a
     quad with a corner behind the eye."""
     p = quad_corners(z, spacing=spacing)
@@ -69,7 +73,8 @@ def quad_screen_area(z: Float[ArrayLike, "Ny Nx"], camera: Camera, *, spacing: f
     return jnp.where(behind, jnp.inf, area)
 
 
-def quad_levels(area: Float[ArrayLike, "..."], *, texels: int = 64, levels: int = 4, bias: float = 0.0) -> Int[Array, "..."]:
+def quad_levels(area: Float[ArrayLike, "..."], *, texels: int = 64, levels: int = 4,
+                bias: float = 0.0) -> Int[Array, "..."]:
     """Ripple level per quad: round(log2(texels / sqrt(area)) + bias), clamped to [0, levels-1]
     (level 0 = `texels` across the quad, each level halves it)."""
     area = jnp.asarray(area)
