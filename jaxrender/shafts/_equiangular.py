@@ -43,8 +43,8 @@ from ..lights import SpotLight
 from ..maths import atan_nonneg, outer
 from ..shadows import render_shadow_map
 from ..textures import bilinear
-from ._model import FAR, cone_intervals, light_reach, shadow_map_visibility, surface_term
-from ._raymarch import shadow_ray_visibility
+from ._model import FAR, cone_intervals, light_reach, surface_term
+from ._raymarch import surface_visibility
 from ._scene import ShaftsScene
 
 __all__ = ["render_equiangular", "equiangular_scattering", "bake_light_map"]
@@ -184,12 +184,7 @@ def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int
     dirs, t_hit, normals, albedo, points = jax.lax.optimization_barrier((dirs, t_hit, normals, albedo, points))
     res = scene.render.shadow_map if shadow_map is None else int(shadow_map)
     maps = tuple(render_shadow_map(light, scene.prims, resolution=res) for light in scene.lights)
-    if surface_shadows == "map":
-        visibility = shadow_map_visibility(scene, maps)
-    elif surface_shadows == "rays":
-        visibility = shadow_ray_visibility(scene)
-    else:
-        raise ValueError(f"surface_shadows must be 'map' or 'rays', not {surface_shadows!r}")
+    visibility = surface_visibility(scene, maps, surface_shadows)
     surface = surface_term(scene, points, normals, albedo, t_hit, visibility)
     surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
     bias = scene.render.shadow_bias

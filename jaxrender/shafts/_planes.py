@@ -57,10 +57,9 @@ from ._model import (
     cone_intervals,
     light_reach,
     phase_cos,
-    shadow_map_visibility,
     surface_term,
 )
-from ._raymarch import shadow_ray_visibility
+from ._raymarch import surface_visibility
 from ._scene import RenderSettings, ShaftsScene
 
 __all__ = ["render_planes", "shadow_maps"]
@@ -457,12 +456,7 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
     B = int(quantize_bits)
     cam = scene.camera
     maps = shadow_maps(scene)
-    if surface_shadows == "map":
-        visibility = shadow_map_visibility(scene, maps)
-    elif surface_shadows == "rays":
-        visibility = shadow_ray_visibility(scene)
-    else:
-        raise ValueError(f"surface_shadows must be 'map' or 'rays', not {surface_shadows!r}")
+    visibility = surface_visibility(scene, maps, surface_shadows)
     dirs = cam.primary_rays()
     dtype = dirs.dtype
     t_hit, normals, albedo = cast_rays(cam.eye, dirs, scene.prims)

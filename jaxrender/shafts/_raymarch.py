@@ -13,7 +13,16 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ..geometry import cast_rays, hit_point, occluded
-from ._model import FAR, S_FLOOR, attenuation_h, cone_intervals, light_reach, phase_cos, surface_term
+from ._model import (
+    FAR,
+    S_FLOOR,
+    attenuation_h,
+    cone_intervals,
+    light_reach,
+    phase_cos,
+    shadow_map_visibility,
+    surface_term,
+)
 from ._scene import ShaftsScene
 
 __all__ = ["render_raymarch", "raymarch_scattering"]
@@ -32,6 +41,16 @@ def shadow_ray_visibility(scene: ShaftsScene):
         origin = points + normals * (_SURFACE_OFFSET * side)[..., None]
         return 1.0 - occluded(origin, w, s - 2 * _SURFACE_OFFSET, scene.prims)
     return visibility
+
+
+def surface_visibility(scene: ShaftsScene, maps, surface_shadows: str):
+    """The surfaces' shadows for `surface_term`: "map" (the lights' shadow maps, slope-scaled, as
+    the hardware does) or "rays" (exact shadow rays, as the ray march)."""
+    if surface_shadows == "map":
+        return shadow_map_visibility(scene, maps)
+    if surface_shadows == "rays":
+        return shadow_ray_visibility(scene)
+    raise ValueError(f"surface_shadows must be 'map' or 'rays', not {surface_shadows!r}")
 
 
 def raymarch_scattering(scene: ShaftsScene, dirs: Float[Array, "N 3"], surface_t: Float[Array, " N"], *,
