@@ -9,11 +9,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_shafts import _params, _scene, _with
+from test_shafts import _params, _quadrature_inscattering, _quadrature_scene, _scene, _with
 
-from jaxrender.camera import Camera
-from jaxrender.lights import SpotLight
-from jaxrender.shafts import Medium, RenderSettings, ShaftsScene, render, render_equiangular, render_raymarch
+from jaxrender.shafts import render, render_equiangular, render_raymarch
 
 _SMOOTH_TOL = 3e-3  # 32 angle steps, no occluder: second-order midpoint error of the smooth integrand
 _SHADOW_TOL = 0.012  # 32 steps, sphere shadow + 6x6 random light map: step error at shadow/map edges
@@ -42,34 +40,11 @@ def _map():
 
 def test_matches_float64_quadrature_without_occluders():
     """No objects, one light: eq. 2 per pixel by a 400 000-point float64 numpy midpoint rule over
-    the whole ray, written from the model's equations (not the renderer's code)."""
-    scene = ShaftsScene(Camera((0.5, 1.5, 5.0), (0.0, 1.5, 0.0), (0.0, 1.0, 0.0), 40.0, width=6, height=4),
-                        Medium(1.3, 0.2, 0.004),
-                        [SpotLight((0.0, 4.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 25.0, 15.0, (30.0, 20.0, 10.0))],
-                        render=RenderSettings(shadow_map=64, s_max=jnp.asarray(8.0)))
-    got = np.asarray(_eq(scene, samples=64, prune=False))
-    eye = np.array([0.5, 1.5, 5.0])
-    dirs = np.asarray(scene.camera.primary_rays())
-    L, axis = np.array([0.0, 4.0, 0.0]), np.array([0.0, -1.0, 0.0])
-    cut, beam = np.radians(25.0), np.radians(15.0)
-    rho, kappa, K = 1.3, 0.2, 0.004
-    n, t_end = 400_000, 14.0
-    t = (np.arange(n) + 0.5) / n * t_end
-    checked = 0
-    for row in range(4):
-        for col in range(6):
-            d = dirs[row, col]
-            w = eye + t[:, None] * d - L
-            s = np.linalg.norm(w, axis=1)
-            theta = np.arccos(np.clip(w @ axis / s, -1, 1))
-            fall = np.where(theta <= beam, 1.0, (cut - theta) / (cut - beam))
-            fall = np.where((theta < cut) & (s <= 8.0), fall, 0.0)
-            alpha = np.arccos(np.clip(-(w / s[:, None]) @ d, -1, 1))
-            F = K * (1 + 9 * np.cos(alpha / 2) ** 16)
-            val = np.sum(fall * rho * F * np.exp(-rho * kappa * (s + t)) / s**2) * t_end / n
-            np.testing.assert_allclose(got[row, col], val * np.array([30.0, 20.0, 10.0]), rtol=_QUAD_TOL, atol=1e-9)
-            checked += val > 0
-    assert checked >= 8
+    the whole ray (`test_shafts._quadrature_inscattering`, not the renderer's code)."""
+    scene = _quadrature_scene(shadow_map=64)
+    ref = _quadrature_inscattering(scene)
+    np.testing.assert_allclose(np.asarray(_eq(scene, samples=64, prune=False)), ref, rtol=_QUAD_TOL, atol=1e-9)
+    assert np.count_nonzero(ref[..., 0] > 0) >= 8
 
 
 @pytest.mark.parametrize("occluded", [False, True])
