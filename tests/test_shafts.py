@@ -194,6 +194,20 @@ _LOSS = {m: jax.jit(lambda p, s, w, m=m: _loss(m, p, s, w)) for m in _RENDERERS}
 _GRAD = {m: jax.jit(jax.grad(lambda p, s, w, m=m: _loss(m, p, s, w))) for m in _RENDERERS}
 
 
+def _central_differences(loss, p0: dict, name: str) -> np.ndarray:
+    """d loss / d p0[name] by float64 central differences, entry by entry."""
+    base = np.asarray(p0[name], dtype=float)
+    fd = np.zeros_like(base)
+    for idx in np.ndindex(base.shape):
+        h = 1e-5 * max(abs(base[idx]), 1.0)
+        plus, minus = base.copy(), base.copy()
+        plus[idx] += h
+        minus[idx] -= h
+        up, down = float(loss({**p0, name: jnp.asarray(plus)})), float(loss({**p0, name: jnp.asarray(minus)}))
+        fd[idx] = (up - down) / (2 * h)
+    return fd
+
+
 @pytest.mark.parametrize("method", ["raymarch", "planes"])
 def test_gradients_match_central_differences(method):
     """Smooth configuration (design.md): beam width < cutoff, no occluder (no hard shadow edge);
@@ -203,15 +217,7 @@ def test_gradients_match_central_differences(method):
     p0 = _params(scene)
     grad = _GRAD[method](p0, scene, weights)
     for name in ("rho", "kappa", "K", "intensity", "position"):
-        base = np.asarray(p0[name], dtype=float)
-        fd = np.zeros_like(base)
-        for idx in np.ndindex(base.shape):
-            h = 1e-5 * max(abs(base[idx]), 1.0)
-            plus, minus = base.copy(), base.copy()
-            plus[idx] += h
-            minus[idx] -= h
-            fd[idx] = (float(_LOSS[method]({**p0, name: jnp.asarray(plus)}, scene, weights))
-                       - float(_LOSS[method]({**p0, name: jnp.asarray(minus)}, scene, weights))) / (2 * h)
+        fd = _central_differences(lambda p: _LOSS[method](p, scene, weights), p0, name)
         np.testing.assert_allclose(np.asarray(grad[name]), fd, rtol=_FD_RTOL, atol=1e-8 * abs(fd).max(), err_msg=name)
 
 

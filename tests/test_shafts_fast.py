@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_shafts import _params, _quadrature_inscattering, _quadrature_scene, _scene, _with
+from test_shafts import _central_differences, _params, _quadrature_inscattering, _quadrature_scene, _scene, _with
 
 from jaxrender.shafts import render, render_equiangular, render_raymarch
 
@@ -111,15 +111,7 @@ def test_gradients_match_central_differences():
     p0 = _params(scene)
     grad = _GRAD(p0, scene, weights)
     for name in ("rho", "kappa", "K", "intensity", "position"):
-        base = np.asarray(p0[name], dtype=float)
-        fd = np.zeros_like(base)
-        for idx in np.ndindex(base.shape):
-            h = 1e-5 * max(abs(base[idx]), 1.0)
-            plus, minus = base.copy(), base.copy()
-            plus[idx] += h
-            minus[idx] -= h
-            fd[idx] = (float(_LOSS({**p0, name: jnp.asarray(plus)}, scene, weights))
-                       - float(_LOSS({**p0, name: jnp.asarray(minus)}, scene, weights))) / (2 * h)
+        fd = _central_differences(lambda p: _LOSS(p, scene, weights), p0, name)
         assert np.all(np.abs(fd) > 0), name
         np.testing.assert_allclose(np.asarray(grad[name]), fd, rtol=_FD_RTOL, atol=1e-8 * abs(fd).max(), err_msg=name)
 
