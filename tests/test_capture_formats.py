@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import tifffile
+from capture_helpers import write_capture
 from PIL import Image
 
 from fitting import CaptureError, ingest_capture, load_capture, merge_capture, open_store
@@ -20,7 +21,6 @@ EXPOSURES = [0.05, 0.5]
 def _capture(root, ext, writer, *, response="linear"):
     """3 lights x 2 exposures and the white board; returns the integer codes written, by path."""
     rng = np.random.default_rng(1)
-    (root / "images").mkdir(parents=True, exist_ok=True)
     written = {}
 
     def image(name):
@@ -28,12 +28,8 @@ def _capture(root, ext, writer, *, response="linear"):
         written[name] = codes
         return name
 
-    manifest = {"format": "jaxrender-capture", "version": 1, "size": list(SIZE), "response": response,
-                "exposures_s": EXPOSURES, "view": {"theta_deg": 0, "phi_deg": 0},
-                "white": {"reflectance": 0.9, "images": [image(f"images/w{e}.{ext}") for e in range(2)]},
-                "lights": [{"theta_deg": 20.0 * i, "phi_deg": 40.0 * i,
-                            "images": [image(f"images/l{i}_e{e}.{ext}") for e in range(2)]} for i in range(3)]}
-    (root / "capture.json").write_text(json.dumps(manifest))
+    write_capture(root, image, size=SIZE, ext=ext, lights=3, exposures_s=EXPOSURES, angle_step=(20.0, 40.0),
+                  response=response)
     return written
 
 

@@ -8,6 +8,7 @@ import json
 import jax
 import numpy as np
 import pytest
+from capture_helpers import write_capture
 
 from jaxrender.app.cli.programs import fitting_main
 from jaxrender.io import read_btf, write_exr, write_png
@@ -24,13 +25,7 @@ def _capture(root, fmt="png"):
         write_exr(root / name, codes) if fmt == "exr" else write_png(root / name, codes, srgb=False)
         return name
 
-    manifest = {"format": "jaxrender-capture", "version": 1, "size": list(SIZE), "response": "linear",
-                "exposures_s": [0.1, 1.0], "view": {"theta_deg": 0, "phi_deg": 0},
-                "white": {"reflectance": 0.9, "images": [image(f"images/w{e}.{fmt}") for e in range(2)]},
-                "lights": [{"theta_deg": 8.0 * i, "phi_deg": 37.0 * i,
-                            "images": [image(f"images/l{i}_e{e}.{fmt}") for e in range(2)]} for i in range(8)]}
-    (root / "capture.json").write_text(json.dumps(manifest))
-    return root
+    return write_capture(root, image, size=SIZE, ext=fmt, lights=8, exposures_s=[0.1, 1.0], angle_step=(8.0, 37.0))
 
 
 def _edit(root, change):

@@ -5,7 +5,6 @@ pixel problems found during the pass, and the light block sized from the memory 
 Subprocesses share a persistent JAX compilation cache (as tests/test_fit_driver.py)."""
 
 import contextlib
-import json
 import os
 import subprocess
 import sys
@@ -15,6 +14,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from capture_helpers import write_capture
 
 from fitting import (
     CaptureError,
@@ -28,7 +28,7 @@ from fitting import (
 )
 from fitting.ingest import light_block_for
 from fitting.store import DARK, SATURATED, VALID
-from jaxrender.io import InputError, read_btf, write_exr
+from jaxrender.io import InputError, read_btf, write_exr, write_png
 
 SIZE = (8, 8)
 CHUNK = 8          # 8 tiles of 8 texels
@@ -193,8 +193,6 @@ def test_killed_fit_resumes_bit_identical(root, store32):
 
 def _small_capture(root: Path, fmt: str) -> Path:
     """A 4 x 5 capture of 3 lights x 2 exposures with random codes (written by hand, not by synth)."""
-    from jaxrender.io import write_png
-
     rng = np.random.default_rng(0)
     (root / "images").mkdir(parents=True)
 
@@ -203,13 +201,7 @@ def _small_capture(root: Path, fmt: str) -> Path:
         write_exr(root / name, codes) if fmt == "exr" else write_png(root / name, codes, srgb=False)
         return name
 
-    manifest = {"format": "jaxrender-capture", "version": 1, "size": [4, 5], "response": "linear",
-                "exposures_s": [0.1, 1.0], "view": {"theta_deg": 0, "phi_deg": 0},
-                "white": {"reflectance": 0.9, "images": [image(f"images/w{e}.{fmt}") for e in range(2)]},
-                "lights": [{"theta_deg": 10.0 * i, "phi_deg": 30.0 * i,
-                            "images": [image(f"images/l{i}_e{e}.{fmt}") for e in range(2)]} for i in range(3)]}
-    (root / "capture.json").write_text(json.dumps(manifest))
-    return root
+    return write_capture(root, image, size=(4, 5), ext=fmt, lights=3, exposures_s=[0.1, 1.0], angle_step=(10.0, 30.0))
 
 
 def test_truncated_png_found_in_the_pass_leaves_no_store(tmp_path):
