@@ -33,8 +33,10 @@ def equal_cores(default: int = 2) -> int:
     import multiprocessing
 
     cores = default
-    if multiprocessing.parent_process() is not None:
-        return cores  # a pool worker re-importing the script: its parent set its thread counts
+    if multiprocessing.parent_process() is not None or "--multiprocessing-fork" in sys.orig_argv:
+        # a pool worker re-importing the script: its parent set its thread counts (a spawned worker imports
+        # the script before parent_process() is set, hence the interpreter's own argument as well)
+        return cores
     if "--cores" in sys.argv:
         i = sys.argv.index("--cores")
         cores = int(sys.argv[i + 1])
