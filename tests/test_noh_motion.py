@@ -85,7 +85,7 @@ def test_half_resolution_floor_shadows_match_full_resolution(setup):
     """The floor's PCSS on 2 x 2 blocks, read back bilinearly, against PCSS at every floor pixel:
     the same shadows up to the blur of one block at their soft edges."""
     from jaxrender.app.scenes.noh.prepare import fire_visibility
-    from jaxrender.fabric import depth_map, spot_pinhole
+    from jaxrender.fabric import depth_map, raster_window, spot_pinhole
     from jaxrender.shadows import ShadowMap
     from jaxrender.textures import bilinear
 
@@ -94,7 +94,7 @@ def test_half_resolution_floor_shadows_match_full_resolution(setup):
     maps = []
     for q in range(rig.light_position.shape[0]):
         sp = spot_pinhole(rig.light_position[q], rig.light_rotation[q], rig.tan_cutoff, rig.shadow_resolution)
-        maps.append(ShadowMap(depth=depth_map(sp, x, cloth.triangles, window=rig.shadow_window),
+        maps.append(ShadowMap(depth=depth_map(sp, x, cloth.triangles, window=raster_window(sp, x, cloth.triangles)),
                               position=sp.origin, rotation=sp.rotation, tan_cutoff=jnp.asarray(rig.tan_cutoff)))
     full = np.asarray(fire_visibility(maps, rig.floor.position, rig.near))
     half = fire_visibility(maps, rig.shadow_points, rig.near).reshape(rig.shadow_valid.shape + (len(maps),))
@@ -103,3 +103,28 @@ def test_half_resolution_floor_shadows_match_full_resolution(setup):
     assert np.any(full < 0.5)                                   # the garment does shadow the floor
     assert np.mean(np.abs(got - full)) < 0.02                   # block-sized blur at the soft edges only
     assert np.mean(np.abs(got - full) > 0.5) < 0.01
+
+
+def test_split_depth_maps_equal_one_pass(setup):
+    """The fires' depth maps rasterized in two windows (most triangles in a small one, the few
+    large ones compacted into a large one, `_fire_depth_maps`) against one `depth_map` pass with a
+    window covering every triangle, on a pose where some triangles are large: the same map."""
+    from jaxrender.app.scenes.noh.motion import _fire_depth_maps
+    from jaxrender.fabric import depth_map, raster_window, spot_pinhole
+
+    scene, cloth, rig = setup
+    # stretch the garment toward fire 0 so that a few triangles outgrow the small window
+    x = np.asarray(cloth.state.x).copy()
+    x[: _COLS * 2] += 0.5 * (np.asarray(rig.light_position[0]) - x[: _COLS * 2])
+    x = jnp.asarray(x)
+    small = dataclasses.replace(rig, shadow_window=4, large_window=64, large_capacity=128)
+    maps, largest, most = _fire_depth_maps(small, x, cloth.triangles)
+    assert int(most) > 0 and int(most) <= small.large_capacity and float(largest) <= small.large_window
+    for q, sm in enumerate(maps):
+        sp = spot_pinhole(rig.light_position[q], rig.light_rotation[q], rig.tan_cutoff, rig.shadow_resolution)
+        ref = np.asarray(depth_map(sp, x, cloth.triangles, window=raster_window(sp, x, cloth.triangles)))
+        got = np.asarray(sm.depth)
+        assert np.isfinite(ref).sum() > 50
+        np.testing.assert_array_equal(np.isfinite(got), np.isfinite(ref))
+        fin = np.isfinite(ref)
+        np.testing.assert_allclose(got[fin], ref[fin], rtol=1e-6)   # the same triangle's exact ray hit

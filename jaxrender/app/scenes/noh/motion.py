@@ -90,7 +90,9 @@ class MotionRig(eqx.Module):
     light_rotation: Float[Array, "Q 3 3"]
     tan_cutoff: float = eqx.field(static=True)
     window: int = eqx.field(static=True)
-    shadow_window: int = eqx.field(static=True)
+    shadow_window: int = eqx.field(static=True)          # the depth maps' raster window for most triangles
+    large_window: int = eqx.field(static=True)           # ... for the few larger ones (`_fire_depth_maps`)
+    large_capacity: int = eqx.field(static=True)         # how many triangles the large window takes
     shadow_resolution: int = eqx.field(static=True)
     capacity: int = eqx.field(static=True)
     reflection_capacity: int = eqx.field(static=True)
@@ -109,6 +111,7 @@ class FrameCounts(eqx.Module):
     reflection: Array
     view_extent: Array
     shadow_extent: Array
+    shadow_large: Array
 
 
 def _round_up(n: float, granule: int = 1024) -> int:
@@ -119,14 +122,49 @@ def _pow2(n: float) -> int:
     return int(2 ** math.ceil(math.log2(max(2.0, n))))
 
 
-def _extent(ph: Pinhole, vertices: Array, triangles: Array) -> Array:
-    """The largest projected bounding box of a triangle, in pixels (what `raster_window` measures)."""
+def _extents(ph: Pinhole, vertices: Array, triangles: Array) -> Array:
+    """Each triangle's projected bounding box, in pixels (what `raster_window` measures)."""
     px, _ = ph.project(vertices)
-    px = px[triangles]
-    size = jnp.asarray([[ph.width, ph.height]], px.dtype)
-    lo = jnp.clip(jnp.floor(jnp.min(px, axis=1) - 0.5), 0, size)
-    hi = jnp.clip(jnp.ceil(jnp.max(px, axis=1) + 0.5), 0, size)
-    return jnp.max(hi - lo)
+    x, y = px[..., 0][triangles], px[..., 1][triangles]
+    ext = []
+    for c, size in ((x, ph.width), (y, ph.height)):
+        lo = jnp.clip(jnp.floor(jnp.min(c, axis=1) - 0.5), 0, size)
+        hi = jnp.clip(jnp.ceil(jnp.max(c, axis=1) + 0.5), 0, size)
+        ext.append(hi - lo)
+    return jnp.maximum(ext[0], ext[1])
+
+
+def _extent(ph: Pinhole, vertices: Array, triangles: Array) -> Array:
+    """The largest projected bounding box of a triangle, in pixels."""
+    return jnp.max(_extents(ph, vertices, triangles))
+
+
+def _fire_depth_maps(rig: MotionRig, x: Array, triangles: Array) -> tuple[list[ShadowMap], Array, Array]:
+    """The garment's depth map from each fire, (maps, largest triangle extent, most large triangles).
+
+    A raster window is sized by the largest projected triangle, and as the garment dances a few
+    triangles (a stretched sleeve seen edge-on, a fold near a fire) grow to 4x the others' size in
+    the fires' maps: one window for all would cost 16x. So the triangles are split by their
+    extent: all but the large ones are rasterized with `rig.shadow_window`, the large ones
+    (at most `rig.large_capacity`, compacted) with `rig.large_window`, and the two depth maps
+    are combined by their minimum (a z-buffer of the union: the same map as one pass).
+    Degenerate triangles (0, 0, 0) pad both sets and cover nothing."""
+    n_tri = triangles.shape[0]
+    padded = jnp.concatenate([triangles, jnp.zeros((1, 3), triangles.dtype)])
+    maps, largest, most = [], [], []
+    for q in range(rig.light_position.shape[0]):  # four fires: unrolled
+        sp = spot_pinhole(rig.light_position[q], rig.light_rotation[q], rig.tan_cutoff, rig.shadow_resolution)
+        ext = _extents(sp, x, triangles)
+        large = ext > rig.shadow_window
+        small = jnp.where(large[:, None], 0, triangles)
+        big = padded[jnp.nonzero(large, size=rig.large_capacity, fill_value=n_tri)[0]]
+        depth = jnp.minimum(depth_map(sp, x, small, window=rig.shadow_window),
+                            depth_map(sp, x, big, window=rig.large_window))
+        maps.append(ShadowMap(depth=depth, position=rig.light_position[q], rotation=rig.light_rotation[q],
+                              tan_cutoff=jnp.asarray(rig.tan_cutoff, x.dtype)))
+        largest.append(jnp.max(ext))
+        most.append(jnp.sum(large.astype(jnp.int32)))
+    return maps, jnp.max(jnp.stack(largest)), jnp.max(jnp.stack(most))
 
 
 def _shadow_frames(scene: NohScene, vertices: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray, float]:
@@ -193,15 +231,21 @@ def prepare_motion(scene: NohScene, cloth: DrapedCloth, motion: BodyMotion, *, k
     light_pos, light_rot, tan_c = _shadow_frames(scene, x0, margin=1.6)
     tris = cloth.triangles
     window = _pow2(1.1 * raster_window(ph, cloth.state.x, tris))
+    # the depth maps' windows: most triangles fit 1/32 of the map's side (16 px at 512^2: the
+    # settled garment's largest is ~17 px, all but ~2 below 16); the larger ones of the dance (up to
+    # ~70 px at 512^2, at most ~25 of them) get their own window (`_fire_depth_maps`)
     spot = [spot_pinhole(p, r, tan_c, shadow_resolution) for p, r in zip(light_pos, light_rot)]
-    shadow_window = _pow2(1.1 * max(raster_window(sp, cloth.state.x, tris) for sp in spot))
+    rest = max(float(_extent(sp, cloth.state.x, tris)) for sp in spot)
+    shadow_window = _pow2(shadow_resolution / 32)
+    large_window = _pow2(max(shadow_resolution / 4, 2 * rest))
 
     gb = rasterize(ph, cloth.state.x, tris, cloth.uv.reshape(-1, 2), window=window)
     count = int(np.sum(np.asarray(gb.hit) > 0))
     steps = max(1, int(round(frame_dt / cloth.dt)))
     return MotionRig(cloth, motion, ph, floor, floor_uv, shadow_points, half_down.astype(dtype), floor_static, coat,
                      background, mirrored_sky, rays, t_floor, s.direction, env_weight, jnp.asarray(light_pos, dtype),
-                     jnp.asarray(light_rot, dtype), float(tan_c), window, shadow_window, shadow_resolution,
+                     jnp.asarray(light_rot, dtype), float(tan_c), window, shadow_window, large_window, 64,
+                     shadow_resolution,
                      _round_up(1.15 * count), _round_up(0.4 * count), steps, float(near), float(roughness))
 
 
@@ -272,12 +316,7 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
     points = garment_points(ph, geo, gb, g_gather)
 
     # shadow maps of this pose from every fire, PCSS at every garment, floor and reflected point
-    maps = [ShadowMap(depth=depth_map(spot_pinhole(rig.light_position[q], rig.light_rotation[q], rig.tan_cutoff,
-                                                   rig.shadow_resolution), x, cloth.triangles,
-                                      window=rig.shadow_window),
-                      position=rig.light_position[q], rotation=rig.light_rotation[q],
-                      tan_cutoff=jnp.asarray(rig.tan_cutoff, dtype))
-            for q in range(rig.light_position.shape[0])]
+    maps, shadow_extent, shadow_large = _fire_depth_maps(rig, x, cloth.triangles)
 
     # the mirrored garment: what the floor reflects, as real garment points seen from the floor
     mv, mn, mt = mirror_mesh(x, normals, cloth.triangles, jnp.zeros(3, dtype), up)
@@ -329,11 +368,8 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
     flames = flame_billboards(scene, ph, view)
     for q in range(n_fires):  # four fires: unrolled
         img = img + flames.hit[q][..., None] * bilinear(emission[q], flames.uv[q], wrap="clamp")
-    spots = [spot_pinhole(rig.light_position[q], rig.light_rotation[q], rig.tan_cutoff, rig.shadow_resolution)
-             for q in range(n_fires)]
     view_extent = jnp.maximum(_extent(ph, x, cloth.triangles), _extent(ph, mv, mt))
-    counts = FrameCounts(garment, g_count, r_count, view_extent,
-                         jnp.max(jnp.stack([_extent(sp, x, cloth.triangles) for sp in spots])))
+    counts = FrameCounts(garment, g_count, r_count, view_extent, shadow_extent, shadow_large)
     return img, state, counts
 
 
@@ -349,8 +385,10 @@ def grown(rig: MotionRig, counts: FrameCounts) -> MotionRig | None:
         changes["reflection_capacity"] = _round_up(1.25 * int(counts.reflection))
     if float(counts.view_extent) > rig.window:
         changes["window"] = _pow2(float(counts.view_extent))
-    if float(counts.shadow_extent) > rig.shadow_window:
-        changes["shadow_window"] = _pow2(float(counts.shadow_extent))
+    if float(counts.shadow_extent) > rig.large_window:
+        changes["large_window"] = _pow2(float(counts.shadow_extent))
+    if int(counts.shadow_large) > rig.large_capacity:
+        changes["large_capacity"] = _round_up(1.25 * int(counts.shadow_large), 64)
     if not changes:
         return None
     return dataclasses.replace(rig, **changes)
