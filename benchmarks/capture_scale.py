@@ -3,6 +3,7 @@
     python benchmarks/capture_scale.py                  # 1024x1024 and 256x256, 540 lights x 2 exposures
     python benchmarks/capture_scale.py --sizes 256      # the 256x256 part only
     python benchmarks/capture_scale.py --quick          # 32x32 x 60 lights: a smoke run, nothing recorded
+                                                        # (ingest, fit, Dask x1; no in-memory/float32 comparison)
 
 A synthetic capture as the issue's user had (8-bit PNG, 2 exposures: 1/640 s and 1/125 s, 540 of
 the paper's light directions, `fitting.synth` maps and sensor) is written once under --root and
@@ -218,7 +219,8 @@ def compare_truth(a: dict, truth) -> dict:
             "rho_d_abs_median": float(np.median(rho))}
 
 
-def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, dask: bool, steps: list) -> dict:
+def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, dask: tuple[int, ...],
+             steps: list) -> dict:
     t0 = time.perf_counter()
     cap = write_capture(root, size, n_lights)
     print(f"capture {size}x{size}x{n_lights}: {cap} ({time.perf_counter() - t0:.0f} s to write or find)", flush=True)
@@ -264,17 +266,16 @@ def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, da
         print(f"  store vs in-memory fit: {m32['fit']['seconds']:.1f} s vs {mmem['fit']['seconds']:.1f} s "
               f"(rate ratio {out['store_vs_inmemory_rate']:.3f}); bit-identical: {out['float32_store_bit_identical']}")
         print(f"  float16 vs float32 store: {out['float16_vs_float32']}")
-    if dask:
-        for n in (1, 2):
-            btf = root / f"btf_dask{n}_{size}"
-            shutil.rmtree(btf, ignore_errors=True)
-            steps.append(measure(f"{tag} fit store dask x{n}", [*FITTING, "fit", str(store16), "--out", str(btf),
-                                                               "--no-pyramid", "--dask-workers", str(n)], env))
-            md, leveld = _btf(btf)
-            out[f"dask{n}_fit_s"] = md["fit"]["seconds"]
-            out[f"dask{n}_same_maps"] = all(np.array_equal(leveld[k], level16[k]) for k in leveld if k in level16)
-            print(f"  dask x{n}: fit {md['fit']['seconds']:.1f} s, "
-                  f"same maps as one process: {out[f'dask{n}_same_maps']}")
+    for n in dask:
+        btf = root / f"btf_dask{n}_{size}"
+        shutil.rmtree(btf, ignore_errors=True)
+        steps.append(measure(f"{tag} fit store dask x{n}", [*FITTING, "fit", str(store16), "--out", str(btf),
+                                                           "--no-pyramid", "--dask-workers", str(n)], env))
+        md, leveld = _btf(btf)
+        out[f"dask{n}_fit_s"] = md["fit"]["seconds"]
+        out[f"dask{n}_same_maps"] = all(np.array_equal(leveld[k], level16[k]) for k in leveld if k in level16)
+        print(f"  dask x{n}: fit {md['fit']['seconds']:.1f} s, "
+              f"same maps as one process: {out[f'dask{n}_same_maps']}")
     return out
 
 
@@ -312,7 +313,8 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[1024, 256])
     parser.add_argument("--lights", type=int, default=540)
     parser.add_argument("--root", type=Path, default=Path(tempfile.gettempdir()) / "capture_scale")
-    parser.add_argument("--quick", action="store_true", help="32x32 x 60 lights, nothing recorded")
+    parser.add_argument("--quick", action="store_true",
+                        help="32x32 x 60 lights, ingest + fit + Dask x1 only, nothing recorded")
     args = parser.parse_args()
     sizes, n_lights = ([32], 60) if args.quick else (args.sizes, args.lights)
     args.root.mkdir(parents=True, exist_ok=True)
@@ -327,7 +329,9 @@ def main() -> None:
     results = []
     for size in sizes:
         small = size <= 256
-        results.append(run_size(args.root, size, n_lights, env, speed=small, dask=small, steps=steps))
+        # quick (a smoke run; each step is a process that imports JAX): no speed comparison, one Dask worker
+        results.append(run_size(args.root, size, n_lights, env, speed=small and not args.quick,
+                                dask=((1,) if args.quick else (1, 2)) if small else (), steps=steps))
     report = {"sizes": results, "steps": steps, "load_end": os.getloadavg()}
     big = max(results, key=lambda r: r["size"])
     if big.get("fit_cpu_seconds"):

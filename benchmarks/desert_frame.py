@@ -22,12 +22,13 @@ FIG = Path(__file__).parent / "figures"
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="360x240, 32x32 dunes, 32 texels per quad")
+    parser.add_argument("--quick", action="store_true", help="120x80, 16x16 dunes, 16 texels per quad, 1 repeat")
     parser.add_argument("--no-peer", action="store_true", help="skip the no-culling, no-LOD frame")
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
     if args.quick:
-        w, h, size = 360, 240, dict(dune_size=32, ripple_size=32, texels=32)
+        w, h, size = 120, 80, dict(dune_size=16, ripple_size=16, texels=16)
+        args.repeats = 1
     else:
         w, h, size = 720, 480, dict(dune_size=64, ripple_size=64, texels=64)
     start = time.perf_counter()

@@ -16,11 +16,15 @@ table rows no script writes are kept as they are (their verdict and notes includ
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import os
+import signal
 import subprocess
 import sys
+import tempfile
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -42,18 +46,35 @@ def _fingerprint() -> dict[str, str]:
     return {str(p.relative_to(HERE)): hashlib.sha256(p.read_bytes()).hexdigest() for p in paths if p.is_file()}
 
 
-def run_script(path: Path, quick: bool, timeout: float) -> tuple[str, int, float, str]:
+def run_script(path: Path, quick: bool, timeout: float | None) -> tuple[str, int, float, float, str]:
+    """(name, exit code, wall seconds, CPU seconds of the script and every process it started, output tail)."""
     env = dict(os.environ)
     if quick:
         env["BENCH_NO_RESULTS"] = "1"
     cmd = [sys.executable, str(path)] + (["--quick"] if quick else [])
     start = time.perf_counter()
-    try:
-        proc = subprocess.run(cmd, cwd=HERE.parent, env=env, capture_output=True, text=True, timeout=timeout)
-        code, tail = proc.returncode, (proc.stdout + proc.stderr)[-2000:]
-    except subprocess.TimeoutExpired:
-        code, tail = 124, f"timed out after {timeout:.0f} s"
-    return path.name, code, time.perf_counter() - start, tail
+    with tempfile.TemporaryFile("w+") as out:
+        # its own session, so that a timeout ends the script's children too; os.wait4 gives the CPU time of the
+        # script and of its waited-for descendants (JAX's threads, child processes, pool workers)
+        proc = subprocess.Popen(cmd, cwd=HERE.parent, env=env, stdout=out, stderr=subprocess.STDOUT, text=True,
+                                start_new_session=True)
+        fired = threading.Event()
+
+        def kill():
+            fired.set()
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+
+        timer = threading.Timer(timeout, kill) if timeout else None
+        if timer:
+            timer.start()
+        _, status, usage = os.wait4(proc.pid, 0)
+        if timer:
+            timer.cancel()
+        proc.returncode = code = 124 if fired.is_set() else os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        tail = out.read()[-2000:] + (f"\ntimed out after {timeout:.0f} s" if fired.is_set() else "")
+    return path.name, code, time.perf_counter() - start, usage.ru_utime + usage.ru_stime, tail
 
 
 def _split_row(line: str) -> list[str]:
@@ -133,11 +154,13 @@ def main(argv: list[str] | None = None) -> int:
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         outcomes = list(pool.map(lambda p: run_script(p, args.quick, timeout), todo))
     failed = [o for o in outcomes if o[1] != 0]
-    for name, code, secs, tail in outcomes:
-        print(f"{'ok  ' if code == 0 else 'FAIL'} {name:28s} {secs:6.1f} s" + (f" (exit {code})" if code else ""))
-    for name, code, _, tail in failed:
+    for name, code, secs, cpu, _ in outcomes:
+        print(f"{'ok  ' if code == 0 else 'FAIL'} {name:28s} {secs:6.1f} s wall {cpu:6.1f} s CPU"
+              + (f" (exit {code})" if code else ""))
+    for name, code, _, _, tail in failed:
         print(f"\n--- {name} (exit {code}) ---\n{tail}", file=sys.stderr)
-    print(f"{len(outcomes)} scripts in {time.perf_counter() - start:.0f} s, {len(failed)} failed")
+    print(f"{len(outcomes)} scripts in {time.perf_counter() - start:.0f} s ({sum(o[3] for o in outcomes):.0f} s CPU, "
+          f"load {os.getloadavg()[0]:.1f}), {len(failed)} failed")
     if args.quick:
         after = _fingerprint()
         changed = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k))

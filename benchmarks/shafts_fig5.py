@@ -22,12 +22,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _shafts_common as C  # noqa: E402
 
 SUBPLANES = [1, 2, 3, 4, 6, 8, 12, 16, 25]
-SUBPLANES_QUICK = [1, 6, 25]
+SUBPLANES_QUICK = [1, 6]  # fig. 6 shows m = 1 and 6; each count is a compile
 
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="180 x 120, 3 sub-plane counts, no float column")
+    parser.add_argument("--quick", action="store_true", help="120 x 80, 2 sub-plane counts, no float column, 1 repeat")
     args = parser.parse_args(argv)
 
     import equinox as eqx
@@ -39,9 +39,9 @@ def main(argv: list[str] | None = None) -> dict:
 
     from jaxrender.shafts import render_planes
 
-    w, h = (180, 120) if args.quick else (C.PAPER_W, C.PAPER_H)
+    w, h = (120, 80) if args.quick else (C.PAPER_W, C.PAPER_H)
     counts = SUBPLANES_QUICK if args.quick else SUBPLANES
-    repeats = 3 if args.quick else 2
+    repeats = 1 if args.quick else 2
     scene = C.load(C.sphere_scene(w, h))
     white = float(C.RENDER["display_white"])
     print(f"# fig. 5, {w} x {h}, n = 30 planes; {C.machine()}")

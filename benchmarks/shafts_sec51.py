@@ -24,7 +24,7 @@ import _shafts_common as C  # noqa: E402
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="180 x 120 instead of 720 x 480")
+    parser.add_argument("--quick", action="store_true", help="120 x 80 instead of 720 x 480, 1 repeat")
     args = parser.parse_args(argv)
 
     import equinox as eqx
@@ -36,8 +36,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     from jaxrender.shafts import render_planes, render_raymarch
 
-    w, h = (180, 120) if args.quick else (C.PAPER_W, C.PAPER_H)
-    repeats = 3 if args.quick else 5
+    w, h = (120, 80) if args.quick else (C.PAPER_W, C.PAPER_H)
+    repeats = 1 if args.quick else 5
     scene = C.load(C.sphere_scene(w, h))
     white = float(C.RENDER["display_white"])
     print(f"# section 5.1, {w} x {h}; {C.machine()}")
