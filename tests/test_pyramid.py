@@ -4,6 +4,8 @@ ordinary mip and than a one-lobe moment-matched level), and `build_pyramid` / `f
 write every channel of every level with btf.json last."""
 
 import json
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -16,6 +18,13 @@ from jaxrender.app.cli.programs import fitting_main
 from jaxrender.brdf import BTFTexel, reflectance
 from jaxrender.io import LOBE_CHANNELS, read_btf, write_btf
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from _em_numpy import em_texels_numpy, gather_children_numpy  # noqa: E402
+
+# The numpy peer of the speed benchmark runs the same arithmetic in float32 in another order; the EM
+# amplifies rounding a little through its |change of log-likelihood| < 1e-5 stop (measured: 2.3e-6
+# on normals, < 1e-6 elsewhere, on the levels below).
+PEER_RTOL = 2e-5
 # The issue's target: the two-lobe EM level's rendering error is at most a third of the mip's.
 EM_VS_MIP_RATIO = 1 / 3
 N_TEXELS = 8
@@ -147,6 +156,28 @@ def test_em_downsample_equals_em_texels_on_the_gathered_children():
         expected, _ = em_texels(flat, one_lobe_children=one_lobe)
         for a, b in zip(jax.tree.leaves(coarse), jax.tree.leaves(expected)):
             np.testing.assert_array_equal(np.asarray(a).reshape(b.shape), np.asarray(b))
+
+
+def _fields(texel: BTFTexel) -> dict:
+    """A BTFTexel as the numpy peer's dict of fields."""
+    lobe = lambda k: {f: getattr(getattr(texel, k), f) for f in ("rho_s", "normal", "sigma_x", "sigma_y")}  # noqa: E731
+    return {"rho_d": texel.rho_d, "weight": texel.weight, "lobe0": lobe("lobe0"), "lobe1": lobe("lobe1")}
+
+
+def test_numpy_peer_computes_the_same_levels():
+    """benchmarks/_em_numpy.py (the speed benchmark's peer, independent numpy code) gives each
+    coarse texel what `em_downsample` gives: one-lobe children (level 0 -> 1, the kernel without
+    lobe 1) and two-lobe children (level 1 -> 2, EM in 98-100 % of texels), the same one-or-two-lobe
+    decisions, every field within PEER_RTOL (relative, 1e-3 floor for components near 0)."""
+    level0 = BTFTexel.from_channels(_level0((13, 11), 3))
+    level1, _ = em_downsample(level0, chunk=16)
+    level2, _ = em_downsample(level1, chunk=16)
+    for fine, coarse in ((level0, level1), (level1, level2)):
+        ref = em_texels_numpy(gather_children_numpy(jax.tree.map(np.asarray, _fields(fine))))
+        got = jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + a.shape[2:]), _fields(coarse))
+        np.testing.assert_array_equal(got["weight"] > 0, ref["weight"] > 0)
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves({k: ref[k] for k in got})):
+            np.testing.assert_array_less(np.abs(a - b) / np.maximum(np.abs(b), 1e-3), PEER_RTOL)
 
 
 def test_chunk_size_counts_the_fixed_cost_of_a_kernel_call():
