@@ -5,7 +5,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrender.geometry import Quads, Spheres, cast_rays, closest_hit, intersect_quad, intersect_sphere, occluded
+from jaxrender.geometry import (
+    Quads,
+    Spheres,
+    cast_rays,
+    closest_hit,
+    intersect_quad,
+    intersect_sphere,
+    nearest_distance,
+    occluded,
+)
 
 _TOL = 1e-9  # float64 closed forms, a few dozen operations (the quadratic loses a few digits near tangency)
 
@@ -74,6 +83,27 @@ def test_cast_rays_equals_loop_of_closest_hit(jit):
         np.testing.assert_allclose(a[i], ai, atol=_TOL)
     hit = np.isfinite(np.asarray(t))
     np.testing.assert_allclose(np.linalg.norm(np.asarray(n)[hit], axis=1), 1.0, atol=_TOL)
+
+
+@pytest.mark.parametrize("n_spheres", [3, 20])  # written-out column minimum, and jnp.min past SHORT_AXIS
+def test_nearest_distance_is_numpy_minimum_and_drives_occluded(n_spheres):
+    o, d = _random_rays(300, 3)
+    rng = np.random.default_rng(4)
+    centres, radii = rng.uniform(-1, 1, (n_spheres, 3)), rng.uniform(0.1, 0.4, n_spheres)
+    quad = (np.array([0.0, -0.5, 0.0]), np.array([2.0, 0.0, 0.0]), np.array([0.0, 0.0, 2.0]))
+    prims = (Spheres(centres, radii), Quads([quad[0]], [quad[1]], [quad[2]]))
+    got = np.asarray(jax.jit(nearest_distance)(jnp.asarray(o), jnp.asarray(d), prims))
+    want = np.array([min([_np_sphere(oi, di, c, r) for c, r in zip(centres, radii)] + [_np_quad(oi, di, *quad)])
+                     for oi, di in zip(o, d)])
+    assert np.isinf(want).sum() > 10 and np.isfinite(want).sum() > 10
+    np.testing.assert_array_equal(np.isinf(got), np.isinf(want))
+    np.testing.assert_allclose(got[np.isfinite(want)], want[np.isfinite(want)], atol=_TOL)
+    # the same t as cast_rays (to float64 rounding: jitted vs eager fusion); occluded agrees with it
+    np.testing.assert_allclose(got, np.asarray(cast_rays(jnp.asarray(o), jnp.asarray(d), prims)[0]), rtol=1e-12)
+    fin = np.isfinite(got)
+    for scale, blocked in ((1.01, 1.0), (0.99, 0.0)):
+        occ = np.asarray(occluded(jnp.asarray(o[fin]), jnp.asarray(d[fin]), jnp.asarray(got[fin] * scale), prims))
+        np.testing.assert_array_equal(occ, blocked)
 
 
 def test_occluded_and_empty_groups():

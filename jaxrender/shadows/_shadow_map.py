@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ..geometry import Primitives, cast_rays
+from ..geometry import Primitives, nearest_distance
 from ..lights import SpotLight
 from ..maths import safe_norm
 
@@ -67,7 +67,7 @@ def render_shadow_map(light: SpotLight, prims: Primitives, *, resolution: int = 
     tan_c = jnp.tan(light.cutoff)
     dirs = texel_directions(rotation, tan_c, resolution)
     prims = jax.lax.stop_gradient(prims)
-    t, _, _ = cast_rays(light.position, dirs, prims)
+    t = nearest_distance(light.position, dirs, prims)
     return ShadowMap(depth=t, position=light.position, rotation=rotation, tan_cutoff=tan_c)
 
 

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ..geometry import bounding_points, cast_rays
+from ..geometry import bounding_points, nearest_distance
 from ..lights import SpotLight
 from ..maths import dot, safe_norm
 from ..shadows import ShadowMap, shadow_test
@@ -63,7 +63,7 @@ def light_reach(scene: ShaftsScene, light: SpotLight, *, rim: int = 48, grid: in
     local = jnp.concatenate([rim_local, inner], axis=0)
     local = local / safe_norm(local)[:, None]
     dirs = local @ jnp.stack([x, y, z], axis=0)
-    t, _, _ = cast_rays(light.position, dirs, scene.prims)
+    t = nearest_distance(light.position, dirs, scene.prims)
     finite = jnp.isfinite(t)
     hit_reach = 1.02 * jnp.max(jnp.where(finite, t, 0.0))
     if scene.spheres.count + scene.quads.count == 0:
