@@ -29,15 +29,16 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     width, height = (240, 160) if quick else (720, 480)
-    repeats = 1 if quick else 3
     scene = load_stage_scene(width=width, height=height)
     fast = jax.jit(lambda s: render_equiangular(s, samples=EQUIANGULAR_SAMPLES))
-    img, c_e, t_e = _timed(fast, scene, repeats)
+    img, c_e, t_e = _timed(fast, scene, 1 if quick else 3)  # the default method's frame: median of 3
+    # the two comparisons are timed by one frame each: at 3.4 and 5 s of CPU a frame, more repeats
+    # would double the section's time for a figure benchmarks/shafts_interactive.py measures anyway
     if not quick:  # quick (tests): one compile fewer
         planes8 = jax.jit(lambda s: render_planes(s, planes=30, subplanes=6, quantize_bits=8))
-        img8, c_8, t_8 = _timed(planes8, scene, repeats)
+        img8, c_8, t_8 = _timed(planes8, scene, 1)
     march = jax.jit(lambda s: render_raymarch(s, samples=RAYMARCH_SAMPLES, batch_size=128))
-    ref, c_r, t_r = _timed(march, scene, 1 if quick else 2)
+    ref, c_r, t_r = _timed(march, scene, 1)
     rel = float(np.linalg.norm(img - ref) / np.linalg.norm(ref))
     outputs = [("stage", img), ("stage_raymarch", ref)] + ([] if quick else [("stage_planes_8bit", img8)])
     for name, image in outputs:
