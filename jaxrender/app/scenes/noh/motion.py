@@ -35,7 +35,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from jaxrender.fabric import (
     Pinhole,
@@ -52,14 +52,13 @@ from jaxrender.fabric import (
     spot_pinhole,
     tangent_frames,
 )
-from jaxrender.lights import QuadLights, env_radiance, sample_envmap, sample_quad_lights
-from jaxrender.maths import normalize
+from jaxrender.lights import QuadLightSamples, env_radiance, sample_envmap, sample_quad_lights
 from jaxrender.shadows import ShadowMap
 from jaxrender.textures import bilinear
 from sims import BodyMotion, ClothState, DrapedCloth, advance_cloth, cloth_mesh
 
 from .frame import fire_light
-from .prepare import ViewSurfaces, fire_visibility, flame_billboards, floor_texels, garment_points
+from .prepare import fire_visibility, floor_texels, garment_points, quad_hits
 from .scene import NohScene
 from .shading import FloorPoints, GarmentPoints, SurfaceLight, shade_floor, shade_garment, shared_light
 
@@ -75,9 +74,10 @@ class MotionRig(eqx.Module):
     motion: BodyMotion
     pinhole: Pinhole                        # the camera's
     floor: FloorPoints                      # every pixel whose ray meets the floor plane
-    floor_uv: Float[Array, "P 2"]           # where each floor pixel reads the half-resolution shadows
-    shadow_points: Float[Array, "S 3"]      # the floor under every pixel of a half-resolution grid
-    shadow_valid: Float[Array, "Hh Wh"]     # 1 where that pixel sees the floor
+    floor_uv: Float[Array, "P 2"]           # where each floor pixel reads the half-resolution firelight
+    shadow_points: Float[Array, "S 3"]      # the floor under the pixels of a half-resolution grid that see it
+    shadow_index: Int[Array, " S"]          # ... their index in that grid (flattened)
+    shadow_valid: Float[Array, "Hh Wh"]     # 1 where a pixel of that grid sees the floor
     floor_static: Float[Array, "P 3"]
     floor_coat: Float[Array, "H W"]         # 1 where the polished stage is, 0 on the gravel and off the floor
     background: Float[Array, "H W 3"]
@@ -86,6 +86,8 @@ class MotionRig(eqx.Module):
     t_floor: Float[Array, "H W"]
     env_direction: Float[Array, "K 3"]
     env_weight: Float[Array, "K 3"]
+    flames: FlamePixels                     # the flames seen directly (in front of what is behind them)
+    mirrored_flames: FlamePixels            # ... mirrored in the floor (beyond the floor plane)
     light_position: Float[Array, "Q 3"]
     light_rotation: Float[Array, "Q 3 3"]
     tan_cutoff: float = eqx.field(static=True)
@@ -100,6 +102,16 @@ class MotionRig(eqx.Module):
     steps: int = eqx.field(static=True)
     near: float = eqx.field(static=True)
     roughness: float = eqx.field(static=True)
+
+
+class FlamePixels(eqx.Module):
+    """The pixels whose rays meet a flame quad (the camera and the fires stand still: found once),
+    each quad's ray distance and uv there, and whether it is hit (1) inside the quad."""
+
+    index: Int[Array, " n"]
+    t: Float[Array, "Q n"]
+    uv: Float[Array, "Q n 2"]
+    inside: Float[Array, "Q n"]
 
 
 class FrameCounts(eqx.Module):
@@ -216,7 +228,8 @@ def prepare_motion(scene: NohScene, cloth: DrapedCloth, motion: BodyMotion, *, k
     half_rays = ph.ray(jnp.stack([sx, sy], -1))
     half_down = half_rays[..., 1] < -1e-6
     half_t = jnp.where(half_down, -ph.origin[1] / jnp.where(half_down, half_rays[..., 1], -1.0), 0.0)
-    shadow_points = (ph.origin[None, None, :] + half_t[..., None] * half_rays).reshape(-1, 3)
+    shadow_index = jnp.asarray(np.flatnonzero(np.asarray(half_down)), jnp.int32)
+    shadow_points = (ph.origin[None, None, :] + half_t[..., None] * half_rays).reshape(-1, 3)[shadow_index]
     fy, fx = jnp.divmod(f_index, w)
     floor_uv = jnp.stack([(fx.astype(dtype) + 0.5) / (2 * hw), (fy.astype(dtype) + 0.5) / (2 * hh)], -1)
     s = sample_envmap(scene.env, key, k_env)
@@ -226,6 +239,14 @@ def prepare_motion(scene: NohScene, cloth: DrapedCloth, motion: BodyMotion, *, k
     up = jnp.asarray([0.0, 1.0, 0.0], dtype)
     background = env_radiance(scene.env, rays, filter="mitsuba")
     mirrored_sky = env_radiance(scene.env, reflect_directions(rays, up), filter="mitsuba")
+    # where the flames and their mirror images cover the image (hit beyond the floor plane)
+    fl = scene.fires
+    t, uv, inside = quad_hits(fl.center, fl.u, fl.v, ph.origin, rays)
+    flames = _flame_pixels(t, uv, inside & (t > 0))
+    origin = jnp.zeros(3, dtype)
+    mirrored_centre = reflect_points(fl.center, origin, up)
+    t, uv, inside = quad_hits(mirrored_centre, fl.u, reflect_directions(fl.v, up), ph.origin, rays)
+    mirrored_flames = _flame_pixels(t, uv, inside & (t > t_floor[None]))
     # fixed sizes from the settled pose, with margins for the motion
     x0 = np.asarray(cloth.state.x)
     light_pos, light_rot, tan_c = _shadow_frames(scene, x0, margin=1.6)
@@ -242,8 +263,10 @@ def prepare_motion(scene: NohScene, cloth: DrapedCloth, motion: BodyMotion, *, k
     gb = rasterize(ph, cloth.state.x, tris, cloth.uv.reshape(-1, 2), window=window)
     count = int(np.sum(np.asarray(gb.hit) > 0))
     steps = max(1, int(round(frame_dt / cloth.dt)))
-    return MotionRig(cloth, motion, ph, floor, floor_uv, shadow_points, half_down.astype(dtype), floor_static, coat,
-                     background, mirrored_sky, rays, t_floor, s.direction, env_weight, jnp.asarray(light_pos, dtype),
+    return MotionRig(cloth, motion, ph, floor, floor_uv, shadow_points, shadow_index, half_down.astype(dtype),
+                     floor_static, coat,
+                     background, mirrored_sky, rays, t_floor, s.direction, env_weight, flames, mirrored_flames,
+                     jnp.asarray(light_pos, dtype),
                      jnp.asarray(light_rot, dtype), float(tan_c), window, shadow_window, large_window, 64,
                      shadow_resolution,
                      _round_up(1.15 * count), _round_up(0.4 * count), steps, float(near), float(roughness))
@@ -262,25 +285,39 @@ def _with_light(a: SurfaceLight, b: SurfaceLight) -> SurfaceLight:
     return SurfaceLight(jnp.concatenate([a.direction, b.direction], 1), jnp.concatenate([a.weight, b.weight], 1))
 
 
-def _mirrored_flames(fires: QuadLights, eye: Array, rays: Array, t_min: Array, t_max: Array) -> tuple[Array, Array]:
-    """Each flame quad mirrored in the floor, hit by the view rays between t_min and t_max: (uv, hit)."""
-    up = jnp.asarray([0.0, 1.0, 0.0], rays.dtype)
-    centre = reflect_points(fires.center, jnp.zeros(3, rays.dtype), up)
-    v = reflect_directions(fires.v, up)
-    uvs, hits = [], []
-    pixel = lambda vec: vec.reshape((1,) * (rays.ndim - 1) + (3,))  # noqa: E731
-    for q in range(centre.shape[0]):  # four fires: unrolled
-        nrm = normalize(jnp.cross(fires.u[q], v[q]))
-        denom = jnp.sum(rays * pixel(nrm), -1)
-        safe = jnp.where(jnp.abs(denom) > 1e-9, denom, 1e-9)
-        t = jnp.sum((centre[q] - eye) * nrm) / safe
-        p = pixel(eye) + t[..., None] * rays - pixel(centre[q])
-        a = jnp.sum(p * pixel(fires.u[q]), -1) / jnp.sum(fires.u[q] ** 2)
-        b = jnp.sum(p * pixel(v[q]), -1) / jnp.sum(v[q] ** 2)
-        inside = (jnp.abs(a) <= 1) & (jnp.abs(b) <= 1) & (t > t_min) & (t < t_max)
-        hits.append(inside.astype(rays.dtype))
-        uvs.append(jnp.stack([(a + 1) / 2, (1 - b) / 2], -1))
-    return jnp.stack(uvs), jnp.stack(hits)
+def _flame_pixels(t: Array, uv: Array, inside: Array) -> FlamePixels:
+    """Host-side: the pixels where any quad is hit (`inside`, Q H W), with the quads' t and uv there."""
+    index = np.flatnonzero(np.any(np.asarray(inside), axis=0))
+    flat = lambda a: jnp.asarray(np.asarray(a).reshape(a.shape[0], -1, *a.shape[3:])[:, index])  # noqa: E731
+    return FlamePixels(jnp.asarray(index, jnp.int32), flat(t), flat(uv), flat(inside.astype(t.dtype)))
+
+
+def _flames(pixels: FlamePixels, emission: Float[Array, "Q Hf Wf 3"], t_stop: Float[Array, "H W"]) -> Array:
+    """The flames' radiance at `pixels` where each quad lies before `t_stop` (the surface behind)."""
+    stop = t_stop.reshape(-1)[pixels.index]
+    out = jnp.zeros(pixels.index.shape + (3,), emission.dtype)
+    for q in range(emission.shape[0]):  # four fires: unrolled
+        hit = pixels.inside[q] * (pixels.t[q] < stop).astype(emission.dtype)
+        out = out + hit[:, None] * bilinear(emission[q], pixels.uv[q], wrap="clamp")
+    return out
+
+
+def floor_firelight(rig: MotionRig, samples: QuadLightSamples, vis: Float[Array, "S Q"]) -> Float[Array, "P 3"]:
+    """The firelight reflected by every floor pixel, from its irradiance on the half-resolution
+    grid (`vis`: each fire's PCSS visibility at `rig.shadow_points`) read back bilinearly.
+
+    The floor's BRDF is Lambertian here (the polished stage's specular lobe is its reflection,
+    dropped from the lobe; the gravel has none), so its firelight is rho_d / pi times the
+    irradiance E = sum_k max(wi_k . up, 0) L_k V_q(k) / (r_k^2 pdf_k K) (`fire_light`'s weights),
+    which is smooth but for the shadows: the shadows are soft (PCSS, flames 0.4 m wide) and the
+    flames >= 1 m from the floor, so E on 2 x 2 pixel blocks, read back bilinearly, keeps both,
+    while rho_d (the planks' grain and seams) stays per pixel. Grid pixels that miss the floor
+    (above the horizon) read E = 0: their floor neighbours lie at the horizon, where E ~ 1/r^2 -> 0."""
+    light = fire_light(samples, rig.shadow_points, vis, rig.light_position.shape[0])
+    irradiance = jnp.sum(jnp.maximum(light.direction[..., 1], 0.0)[..., None] * light.weight, axis=1)
+    hh, hw = rig.shadow_valid.shape
+    grid = jnp.zeros((hh * hw, 3), irradiance.dtype).at[rig.shadow_index].set(irradiance).reshape(hh, hw, 3)
+    return rig.floor.texel.rho_d / jnp.pi * bilinear(grid, rig.floor_uv)
 
 
 def _mirror_back(points: GarmentPoints, up: Array) -> GarmentPoints:
@@ -311,7 +348,6 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
     # what the camera sees: the garment in front of the floor plane
     gb = rasterize(ph, x, cloth.triangles, uv, window=rig.window)
     garment = (gb.hit > 0) & (gb.distance < rig.t_floor)
-    view = ViewSurfaces(gb, rig.rays, rig.t_floor, garment, ~garment & jnp.isfinite(rig.t_floor))
     g_scatter, g_gather, g_count = _compact(garment, rig.capacity)
     points = garment_points(ph, geo, gb, g_gather)
 
@@ -328,10 +364,6 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
 
     n_g = points.position.shape[0]
     vis = fire_visibility(maps, jnp.concatenate([points.position, mirrored.position]), rig.near)
-    # the floor's soft shadows: PCSS on the half-resolution grid, bilinear at every floor pixel
-    half = fire_visibility(maps, rig.shadow_points, rig.near).reshape(rig.shadow_valid.shape + (len(maps),))
-    half = jnp.where(rig.shadow_valid[..., None] > 0, half, 1.0)
-    f_vis = bilinear(half, rig.floor_uv)
 
     # light: the same environment samples, the frame's flames
     fires = eqx.tree_at(lambda f: f.emission, scene.fires, emission)
@@ -345,15 +377,15 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
     both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), points, mirrored)
     lit = shade_garment(scene.mats, both, garment_light(both, vis), blend=blend)
     g_rad, r_rad = lit[:n_g], lit[n_g:]
-    f_rad = shade_floor(rig.floor, fire_light(samples, rig.floor.position, f_vis, n_fires)) + rig.floor_static
+    f_rad = floor_firelight(rig, samples, fire_visibility(maps, rig.shadow_points, rig.near)) + rig.floor_static
 
     # the reflection: mirrored sky, garment and flames, blurred by the roughness, times Fresnel
     beyond = jnp.where(gbr.hit > 0, gbr.distance - rig.t_floor, FAR_BEYOND)
     reflected = rig.mirrored_sky.reshape(h * w, 3).at[r_scatter].set(r_rad, mode="drop").reshape(h, w, 3)
     t_stop = jnp.where(gbr.hit > 0, gbr.distance, jnp.inf)
-    m_uv, m_hit = _mirrored_flames(fires, ph.origin, rig.rays, rig.t_floor, t_stop)
-    for q in range(n_fires):
-        reflected = reflected + m_hit[q][..., None] * bilinear(emission[q], m_uv[q], wrap="clamp")
+    m_index = rig.mirrored_flames.index
+    reflected = reflected.reshape(h * w, 3).at[m_index].add(_flames(rig.mirrored_flames, emission, t_stop))
+    reflected = reflected.reshape(h, w, 3)
     cos = jnp.clip(-rig.rays[..., 1], 0.0, 1.0)
     focal = ph.fy
     blur = glossy_blur_pixels(rig.roughness, beyond, jnp.where(jnp.isfinite(rig.t_floor), rig.t_floor, 0.0), focal)
@@ -364,10 +396,9 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
     img = rig.background.reshape(h * w, 3)
     f_idx = rig.floor.index
     img = img.at[f_idx].set(f_rad * (1 - fresnel.reshape(-1)[f_idx])[:, None] + mirror_light.reshape(-1, 3)[f_idx])
-    img = img.at[g_scatter].set(g_rad, mode="drop").reshape(h, w, 3)
-    flames = flame_billboards(scene, ph, view)
-    for q in range(n_fires):  # four fires: unrolled
-        img = img + flames.hit[q][..., None] * bilinear(emission[q], flames.uv[q], wrap="clamp")
+    img = img.at[g_scatter].set(g_rad, mode="drop")
+    surface_t = jnp.where(garment, gb.distance, rig.t_floor)
+    img = img.at[rig.flames.index].add(_flames(rig.flames, emission, surface_t)).reshape(h, w, 3)
     view_extent = jnp.maximum(_extent(ph, x, cloth.triangles), _extent(ph, mv, mt))
     counts = FrameCounts(garment, g_count, r_count, view_extent, shadow_extent, shadow_large)
     return img, state, counts

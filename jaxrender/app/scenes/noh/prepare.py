@@ -168,22 +168,31 @@ def fire_visibility(maps: list[ShadowMap], points: Array, near: float) -> Float[
     return jax.vmap(lambda sm: pcss(sm, points, light_size=float(FIRE_SIZE[0]), near=near, bias=0.02))(stacked).T
 
 
+def quad_hits(center: Float[Array, "Q 3"], u: Float[Array, "Q 3"], v: Float[Array, "Q 3"], eye: Float[Array, "3"],
+              rays: Float[Array, "H W 3"]
+              ) -> tuple[Float[Array, "Q H W"], Float[Array, "Q H W 2"], Bool[Array, "Q H W"]]:
+    """Each quad (centre, half-edge vectors u, v) against the rays from `eye`: the ray distance
+    to its plane, the quad's uv there (u right, v up -> rows down) and whether it lies inside."""
+    ts, uvs, ins = [], [], []
+    for q in range(center.shape[0]):  # four fires: unrolled
+        nrm = normalize(jnp.cross(u[q], v[q]))
+        safe = jnp.where(jnp.abs(dot(rays, nrm)) > 1e-9, dot(rays, nrm), 1e-9)
+        t = dot(center[q] - eye, nrm) / safe
+        p = t[..., None] * rays + jnp.reshape(eye - center[q], (1, 1, 3))   # hit point relative to the centre
+        a = dot(p, u[q]) / dot(u[q], u[q])
+        b = dot(p, v[q]) / dot(v[q], v[q])
+        ts.append(t)
+        uvs.append(jnp.stack([(a + 1) / 2, (1 - b) / 2], -1))
+        ins.append((jnp.abs(a) <= 1) & (jnp.abs(b) <= 1))
+    return jnp.stack(ts), jnp.stack(uvs), jnp.stack(ins)
+
+
 def flame_billboards(scene: NohScene, ph: Pinhole, view: ViewSurfaces) -> FlameBillboards:
     """Each flame quad hit by each view ray in front of the garment or floor, with its uv."""
-    fl, eye, rays = scene.fires, ph.origin, view.rays
+    fl = scene.fires
     surface_t = jnp.where(view.garment, view.gbuffer.distance, view.t_floor)
-    uvs, hits = [], []
-    for q in range(fl.center.shape[0]):  # four fires: unrolled
-        nrm = normalize(jnp.cross(fl.u[q], fl.v[q]))
-        safe = jnp.where(jnp.abs(dot(rays, nrm)) > 1e-9, dot(rays, nrm), 1e-9)
-        t = dot(fl.center[q] - eye, nrm) / safe
-        p = t[..., None] * rays + jnp.reshape(eye - fl.center[q], (1, 1, 3))   # hit point relative to the centre
-        a = dot(p, fl.u[q]) / dot(fl.u[q], fl.u[q])
-        b = dot(p, fl.v[q]) / dot(fl.v[q], fl.v[q])
-        inside = (jnp.abs(a) <= 1) & (jnp.abs(b) <= 1) & (t > 0)
-        hits.append((inside & (t < surface_t)).astype(rays.dtype))
-        uvs.append(jnp.stack([(a + 1) / 2, (1 - b) / 2], -1))
-    return FlameBillboards(jnp.stack(uvs), jnp.stack(hits))
+    t, uv, inside = quad_hits(fl.center, fl.u, fl.v, ph.origin, view.rays)
+    return FlameBillboards(uv, (inside & (t > 0) & (t < surface_t[None])).astype(view.rays.dtype))
 
 
 def prepare_points(ph: Pinhole, scene: NohScene, view: ViewSurfaces, g_index: Array, f_index: Array,
