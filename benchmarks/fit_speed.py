@@ -94,13 +94,22 @@ def scipy_fit(ratio, weight, light_dirs, view_dir, x0):
     return scipy.optimize.least_squares(residuals, x0)
 
 
-def start_vector(ratio, weight, light_dirs, view_dir):
-    r, w = jnp.asarray(ratio), jnp.asarray(weight)
+@jax.jit
+def _start_vector(r, w, light_dirs, view_dir):
     th = initial_theta(r, w, light_dirs, view_dir)
     n, sx, sy = theta_to_geometry(th)
-    wn = w / jnp.mean(jnp.where(w > 0, w, jnp.nan)) if bool(jnp.any(w > 0)) else w
-    rd, rs = project_rho(basis(n, sx, sy, light_dirs, view_dir), r.T, jnp.nan_to_num(wn))
-    return np.concatenate([np.asarray(rd), np.asarray(rs), np.asarray(th)]).astype(np.float64)
+    valid = w > 0  # weights over their mean on the used lights, as the peers normalise them
+    mean = jnp.sum(jnp.where(valid, w, 0.0)) / jnp.maximum(jnp.sum(valid), 1)
+    wn = jnp.where(valid, w / jnp.where(mean > 0, mean, 1.0), 0.0)
+    rd, rs = project_rho(basis(n, sx, sy, light_dirs, view_dir), r.T, wn)
+    return jnp.concatenate([rd, rs, th])
+
+
+def start_vector(ratio, weight, light_dirs, view_dir):
+    """The solver's starting point (rho projected at the starting geometry) as the peers' 10-vector;
+    one compiled program for every texel (eager, each call re-traced its vmaps: ~4 s a texel)."""
+    x = _start_vector(jnp.asarray(ratio), jnp.asarray(weight), jnp.asarray(light_dirs), jnp.asarray(view_dir))
+    return np.asarray(x).astype(np.float64)
 
 
 def _peer_texel(job) -> dict:
