@@ -28,7 +28,7 @@ FIG = Path(__file__).parent / "figures"
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true",
-                        help="120x80, 16x16 dunes, 16 texels per quad, 1 repeat, no culling-only run")
+                        help="120x80, 16x16 dunes, 16 texels per quad, 1 repeat, the LOD frame only")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     if args.quick:
@@ -44,7 +44,7 @@ def main() -> None:
     rows = []
     images = {}
     configs = [("no culling, no LOD", False, False), ("culling", False, True), ("culling + LOD", True, True)]
-    for name, lod, culling in configs[::2] if args.quick else configs:  # quick: each configuration is 2 compiles
+    for name, lod, culling in configs[2:] if args.quick else configs:  # quick: each configuration is 2 compiles
         visible, level = plan_quads(scene.maps, camera, lod=lod, culling=culling)
         caps = quad_capacities(visible, level, scene.maps.levels)
         shade = jax.jit(lambda v, l, caps=caps: shade_quads(scene.maps, v, l, sun, albedo, sky_irr, capacities=caps,
@@ -57,7 +57,8 @@ def main() -> None:
         texels = sum(c * (scene.maps.texels // 2**l) ** 2 for l, c in enumerate(caps))
         rows.append((name, caps, texels, c_shade, t_shade, t_frame))
         print(f"{name}: capacities {caps}, texels {texels}, shading {t_shade:.3f} s, frame {t_frame:.3f} s", flush=True)
-    ref, lod_img = images["no culling, no LOD"], images["culling + LOD"]
+    lod_img = images["culling + LOD"]
+    ref = images.get("no culling, no LOD", lod_img)  # (--quick renders only the LOD frame: the differences are 0)
     diff = np.abs(lod_img - ref) * 255
     same_cull = float(np.max(np.abs(images.get("culling", ref) - ref)) * 255)
     print()
