@@ -16,6 +16,7 @@ benchmarks/figures/shafts_interactive.png, and renders benchmarks/figures/shafts
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import statistics
@@ -35,10 +36,15 @@ sys.path.insert(0, str(HERE))
 from _results import write_results  # noqa: E402
 
 from jaxrender.app.scenes import load_stage_scene, shafts_scene_from_dict  # noqa: E402
-from jaxrender.geometry import cast_rays, hit_point  # noqa: E402
 from jaxrender.io import write_image  # noqa: E402
 from jaxrender.shadows import render_shadow_map  # noqa: E402
 from jaxrender.shafts import render_equiangular, render_planes, render_raymarch  # noqa: E402
+from jaxrender.shafts._equiangular import (  # noqa: E402
+    active_rays_map,
+    bake_light_map,
+    equiangular_scattering,
+    primary_hits,
+)
 from jaxrender.shafts._model import (  # noqa: E402
     FAR,
     cone_intervals,
@@ -119,31 +125,46 @@ def sweep(name, scene, ref, settings, repeats):
     return rows
 
 
-def fixed_part_profile(scene, repeats, shadow_map=512):
-    """Median wall and CPU seconds of the pieces of an equiangular frame (its default 512 maps)."""
-    res = shadow_map
+def frame_profile(scene, samples, repeats, shadow_map=512):
+    """Median wall and CPU seconds of the pieces of an equiangular frame, each jitted on its own
+    from the previous pieces' outputs (so a piece's time is its own), and of the whole frame."""
+    eye, medium, bias = scene.camera.eye, scene.medium, scene.render.shadow_bias
+    hits = jax.jit(primary_hits)(scene)
+    dirs, t_hit, normals, albedo, points = hits
+    surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
 
     def maps(s):
-        return tuple(render_shadow_map(light, s.prims, resolution=res) for light in s.lights)
+        return tuple(render_shadow_map(light, s.prims, resolution=shadow_map) for light in s.lights)
 
-    def primary(s):
-        d = s.camera.primary_rays()
-        return d, cast_rays(s.camera.eye, d, s.prims)
-
-    def surface(s):
-        d, (t, n, a) = primary(s)
-        return surface_term(s, hit_point(s.camera.eye, d, t, far=FAR), n, a, t, shadow_map_visibility(s, maps(s)))
-
-    def intervals(s):
-        d, (t, _, _) = primary(s)
-        st = jnp.where(jnp.isfinite(t), t, FAR)
+    def intervals(s, d, st):
         return [cone_intervals(s, light, d, st, light_reach(s, light)) for light in s.lights]
 
-    pieces = {"shadow maps": lambda s: [m.depth for m in maps(s)], "primary rays + hits": primary,
-              "surface shading (incl. maps)": surface, "cone intervals (incl. primary)": intervals}
+    shadow_maps, cones = jax.jit(maps)(scene), jax.jit(intervals)(scene, dirs, surface_t)
+    baked = jax.jit(lambda s: [bake_light_map(light) for light in s.lights])(scene)
+
+    def surface(s, maps_):
+        return surface_term(s, points, normals, albedo, t_hit, shadow_map_visibility(s, maps_))
+
+    def compaction(cones_):  # the gathers and scatters of active_rays_map around an empty kernel
+        return sum(active_rays_map(lambda d, a, b: d * (b - a)[:, None], dirs, t0, t1) for t0, t1 in cones_)
+
+    def scattering(s, maps_, cones_, baked_):
+        return sum(active_rays_map(functools.partial(equiangular_scattering, light, jax.lax.stop_gradient(sm.depth),
+                                                     bk, eye, rho=medium.rho, kappa=medium.kappa, K=medium.K,
+                                                     bias=bias, samples=samples), dirs, t0, t1)
+                   for light, sm, (t0, t1), bk in zip(s.lights, maps_, cones_, baked_))
+
+    pieces = {"primary hits": (primary_hits, (scene,)), "shadow maps": (maps, (scene,)),
+              "surface shading": (surface, (scene, shadow_maps)),
+              "cone intervals": (intervals, (scene, dirs, surface_t)),
+              "light-map bake": (lambda s: [bake_light_map(light) for light in s.lights], (scene,)),
+              "compaction of active runs (empty kernel)": (compaction, (cones,)),
+              f"in-scattering, {samples} samples (incl. compaction)": (scattering, (scene, shadow_maps, cones, baked)),
+              "whole frame": (lambda s: render_equiangular(s, samples=samples, shadow_map=shadow_map), (scene,))}
     out = {}
-    for key, fn in pieces.items():
-        _, _, wall, cpu = frame_times(jax.jit(fn), scene, repeats)
+    for key, (fn, args) in pieces.items():
+        jitted = jax.jit(fn)
+        _, _, wall, cpu = frame_times(lambda a, jitted=jitted: jitted(*a), args, repeats)
         out[key] = (statistics.median(wall), cpu)
     return out
 
@@ -241,9 +262,14 @@ def main(argv=None) -> int:
         for method in ("equiangular", "raymarch", "planes"):
             ok = [r for r in rows if r["scene"] == name and r["method"] == method and r["err"] <= TARGET]
             summary[(name, method)] = min(ok, key=lambda r: r["median_s"]) if ok else None
-    profiles = {name: fixed_part_profile(scene, repeats) for name, scene in scenes.items()}
+    best_samples = {name: int(summary[(name, "equiangular")]["setting"].split()[0]) if summary[(name, "equiangular")]
+                    else 24 for name in scenes}
+    profiles = {name: frame_profile(scene, best_samples[name], max(repeats, 5)) for name, scene in scenes.items()}
     grad = gradient_ratio(scenes["spot"], 24, repeats)
-    print(f"\nfixed parts (median wall s, median CPU s): {json.dumps(profiles, indent=1)}")
+    for name, prof in profiles.items():
+        print(f"\nwhere the time goes, {name} (median wall s / median CPU s, each piece jitted alone):")
+        for key, (wall, cpu) in prof.items():
+            print(f"  {key:48s} {wall:.4f} / {cpu:.4f}")
     print(f"gradient: {grad}")
     print("\n| scene | method | cheapest setting reaching 2 % | rel. RMS | compile s | wall s min/median/max | CPU s |")
     print("|---|---|---|---|---|---|---|")
