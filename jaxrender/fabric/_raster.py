@@ -103,16 +103,25 @@ def raster_window(pinhole: Pinhole, vertices: Float[ArrayLike, "V 3"], triangles
 
 
 def _ray_triangle(o, d, p0, p1, p2):
-    """(t, b1, b2) of the ray o + t d against the triangle's PLANE (no inside test)."""
-    e1, e2 = p1 - p0, p2 - p0
-    pv = jnp.cross(d, e2)
-    det = jnp.sum(e1 * pv, axis=-1)
+    """(t, b1, b2) of the ray o + t d against the triangle's PLANE (no inside test). Written out
+    component by component: XLA's CPU backend is slow on products and sums over a minor axis of 3
+    (0.110 -> 0.085 s CPU for a 720x480 G-buffer)."""
+    o, d, p0, p1, p2 = ([v[..., i] for i in range(3)] for v in (o, d, p0, p1, p2))
+
+    def cross(a, b):
+        return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+    def dot(a, b):
+        return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+    e1, e2, tv = ([a[i] - p0[i] for i in range(3)] for a in (p1, p2, o))
+    pv = cross(d, e2)
+    det = dot(e1, pv)
     det = jnp.where(jnp.abs(det) > 1e-20, det, 1e-20)
-    tv = o - p0
-    b1 = jnp.sum(tv * pv, axis=-1) / det
-    qv = jnp.cross(tv, e1)
-    b2 = jnp.sum(d * qv, axis=-1) / det
-    t = jnp.sum(e2 * qv, axis=-1) / det
+    b1 = dot(tv, pv) / det
+    qv = cross(tv, e1)
+    b2 = dot(d, qv) / det
+    t = dot(e2, qv) / det
     return t, b1, b2
 
 
