@@ -15,7 +15,9 @@ stable), `measured` (the text of the "measured" column) and `status` (the verdic
 `benchmarks/results/<name>.json` gets the rows plus the date, the command line and the machine
 load (`os.getloadavg`, the machine is shared) at the time of writing. With `quick=True`, or when
 the environment variable BENCH_NO_RESULTS is set (`run_all.py --quick` sets it), nothing is
-written: smoke runs never overwrite measured figures. Returns the path written, or None.
+written: smoke runs never overwrite measured figures, unless BENCH_RESULTS_DIR names another
+directory (`run_all.py --quick` sets it to a scratch directory and checks what lands there), where
+the rows are written whatever `quick` says. Returns the path written, or None.
 """
 
 from __future__ import annotations
@@ -36,8 +38,10 @@ def write_results(name: str, rows: list[dict], *, quick: bool = False) -> Path |
         missing = [k for k in _REQUIRED if not isinstance(row.get(k), str) or not row[k]]
         if missing:
             raise ValueError(f"{name}: result row {row!r} lacks text for {missing}")
-    if quick or os.environ.get("BENCH_NO_RESULTS"):
+    redirect = os.environ.get("BENCH_RESULTS_DIR")  # `run_all.py --quick`: a scratch directory, checked there
+    if not redirect and (quick or os.environ.get("BENCH_NO_RESULTS")):
         return None
+    directory = Path(redirect) if redirect else RESULTS_DIR
     record = {
         "script": f"benchmarks/{name}.py",
         "command": "python " + " ".join([f"benchmarks/{Path(sys.argv[0]).name}", *sys.argv[1:]]),
@@ -46,8 +50,8 @@ def write_results(name: str, rows: list[dict], *, quick: bool = False) -> Path |
         "cpu_count": os.cpu_count(),
         "rows": rows,
     }
-    RESULTS_DIR.mkdir(exist_ok=True)
-    path = RESULTS_DIR / f"{name}.json"
+    directory.mkdir(exist_ok=True)
+    path = directory / f"{name}.json"
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(record, indent=1, ensure_ascii=False) + "\n")
     tmp.replace(path)  # never a half-written file

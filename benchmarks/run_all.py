@@ -1,7 +1,8 @@
 """Run every benchmark and rebuild the summary table of benchmarks/RESULTS.md from their results.
 
     python benchmarks/run_all.py --quick        # every script with --quick (small sizes): do they
-                                                # still run? writes nothing into RESULTS.md or results/
+                                                # still run? writes nothing into RESULTS.md or results/:
+                                                # their result rows go to a scratch directory, checked
     python benchmarks/run_all.py                # every script at full size (long), then the table
     python benchmarks/run_all.py --table-only   # rebuild the table from benchmarks/results/*.json
     python benchmarks/run_all.py --only horizon_speed,fit_speed   # a subset, then the table
@@ -46,11 +47,14 @@ def _fingerprint() -> dict[str, str]:
     return {str(p.relative_to(HERE)): hashlib.sha256(p.read_bytes()).hexdigest() for p in paths if p.is_file()}
 
 
-def run_script(path: Path, quick: bool, timeout: float | None) -> tuple[str, int, float, float, str]:
+def run_script(path: Path, quick: bool, timeout: float | None, results_dir: Path | None = None,
+               ) -> tuple[str, int, float, float, str]:
     """(name, exit code, wall seconds, CPU seconds of the script and every process it started, output tail)."""
     env = dict(os.environ)
     if quick:
         env["BENCH_NO_RESULTS"] = "1"
+    if results_dir is not None:  # the scripts' result rows go there instead (`_results.write_results`)
+        env["BENCH_RESULTS_DIR"] = str(results_dir)
     cmd = [sys.executable, str(path)] + (["--quick"] if quick else [])
     start = time.perf_counter()
     with tempfile.TemporaryFile("w+") as out:
@@ -114,6 +118,27 @@ def summary_table(old_rows: list[list[str]], results: list[dict]) -> list[str]:
     return lines + ["| " + " | ".join(r) + " |" for r in rows]
 
 
+def check_results(directory: Path) -> list[str]:
+    """Problems with the result files a --quick run wrote into `directory` (each must load, name its script and
+    carry rows with issue, target, measured and status), and the summary table must build from them."""
+    problems, records = [], []
+    for path in sorted(directory.glob("*.json")):
+        try:
+            rec = json.loads(path.read_text())
+            assert rec["script"] == f"benchmarks/{path.stem}.py", f"script {rec['script']!r}"
+            assert rec["rows"], "no rows"
+            for row in rec["rows"]:
+                missing = [k for k in ("issue", "target", "measured", "status") if not row.get(k)]
+                assert not missing, f"a row lacks {missing}"
+            records.append(rec)
+        except (ValueError, KeyError, AssertionError) as err:
+            problems.append(f"{path.name}: {err}")
+    table = summary_table([], records)
+    if len(table) != 2 + sum(len({(r["issue"], r["target"]) for r in rec["rows"]}) for rec in records):
+        problems.append("the summary table does not have one row per result row")
+    return problems
+
+
 def rebuild_table() -> None:
     text = RESULTS_MD.read_text()
     if BEGIN not in text or END not in text:
@@ -136,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--jobs", type=int, default=2 if "--quick" in (argv or sys.argv) else 1,
                         help="scripts at once (default 2 with --quick, else 1 so timings do not compete)")
     parser.add_argument("--timeout", type=float, default=None, help="seconds per script (default 170 quick, none)")
+    parser.add_argument("--results-dir", type=Path, default=None,
+                        help="--quick: where the scripts write their result rows (default: a temporary directory)")
     args = parser.parse_args(argv)
     if args.table_only:
         rebuild_table()
@@ -151,8 +178,10 @@ def main(argv: list[str] | None = None) -> int:
     before = _fingerprint() if args.quick else None
     timeout = args.timeout or (170.0 if args.quick else None)
     start = time.perf_counter()
+    scratch = tempfile.TemporaryDirectory() if args.quick and args.results_dir is None else None
+    results_dir = Path(scratch.name) if scratch else args.results_dir
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        outcomes = list(pool.map(lambda p: run_script(p, args.quick, timeout), todo))
+        outcomes = list(pool.map(lambda p: run_script(p, args.quick, timeout, results_dir), todo))
     failed = [o for o in outcomes if o[1] != 0]
     for name, code, secs, cpu, _ in outcomes:
         print(f"{'ok  ' if code == 0 else 'FAIL'} {name:28s} {secs:6.1f} s wall {cpu:6.1f} s CPU"
@@ -162,6 +191,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(outcomes)} scripts in {time.perf_counter() - start:.0f} s ({sum(o[3] for o in outcomes):.0f} s CPU, "
           f"load {os.getloadavg()[0]:.1f}), {len(failed)} failed")
     if args.quick:
+        written = sorted(p.stem for p in results_dir.glob("*.json"))
+        problems = check_results(results_dir)
+        if scratch:
+            scratch.cleanup()
+        print(f"result rows written (to {'a scratch directory' if scratch else results_dir}) by: {', '.join(written)}")
+        if problems:
+            print("run_all --quick: " + "; ".join(problems), file=sys.stderr)
+            return 1
         after = _fingerprint()
         changed = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k))
         if changed:  # (in a shared checkout, someone else's edit meanwhile shows up here too)
