@@ -134,7 +134,7 @@ def check_results(directory: Path) -> list[str]:
         except (ValueError, KeyError, AssertionError) as err:
             problems.append(f"{path.name}: {err}")
     table = summary_table([], records)
-    if len(table) != 2 + sum(len({(r["issue"], r["target"]) for r in rec["rows"]}) for rec in records):
+    if len(table) != 2 + len({(_cell(r["issue"]), _cell(r["target"])) for rec in records for r in rec["rows"]}):
         problems.append("the summary table does not have one row per result row")
     return problems
 
