@@ -136,3 +136,26 @@ def test_split_depth_maps_equal_one_pass(setup):
         np.testing.assert_array_equal(np.isfinite(got), np.isfinite(ref))
         fin = np.isfinite(ref)
         np.testing.assert_allclose(got[fin], ref[fin], rtol=1e-6)   # the same triangle's exact ray hit
+
+
+def test_garment_boxes_give_the_full_image_frame(setup):
+    """The G-buffers rasterized in the boxes around the garment and its mirror image against the
+    same frame rasterized over the whole image: the same picture; a box the garment leaves is
+    widened by `grown`."""
+    from jaxrender.app.scenes.noh.motion import grown
+
+    scene, cloth, rig = setup
+    w, h = rig.pinhole.width, rig.pinhole.height
+    assert rig.view_box != (0, 0, w, h)                                # the boxes do crop at this size
+    full = dataclasses.replace(rig, view_box=(0, 0, w, h), mirror_box=(0, 0, w, h))
+    args = (cloth.state, scene.flames[:, 0], jax.random.key(2))
+    boxed, _, counts = moving_frame_jit(scene, rig, *args)
+    whole, _, _ = moving_frame_jit(scene, full, *args)
+    np.testing.assert_allclose(np.asarray(boxed), np.asarray(whole), rtol=1e-5, atol=1e-6)
+    same = grown(rig, counts) or rig                                   # (other buffers may grow)
+    assert (same.view_box, same.mirror_box) == (rig.view_box, rig.mirror_box)
+    tight = dataclasses.replace(rig, view_box=(w // 2, h // 2, 2, 2))
+    wider = grown(tight, counts)
+    x0, y0, bw, bh = wider.view_box
+    b = np.asarray(counts.bounds)[:4]
+    assert x0 <= max(b[0], 0) and y0 <= max(b[1], 0) and x0 + bw >= min(b[2], w) and y0 + bh >= min(b[3], h)

@@ -102,6 +102,8 @@ class MotionRig(eqx.Module):
     steps: int = eqx.field(static=True)
     near: float = eqx.field(static=True)
     roughness: float = eqx.field(static=True)
+    view_box: tuple[int, int, int, int] = eqx.field(static=True)     # (x0, y0, w, h): where the garment and
+    mirror_box: tuple[int, int, int, int] = eqx.field(static=True)   # its mirror image are rasterized
 
 
 class FlamePixels(eqx.Module):
@@ -124,6 +126,7 @@ class FrameCounts(eqx.Module):
     view_extent: Array
     shadow_extent: Array
     shadow_large: Array
+    bounds: Array           # (x0, y0, x1, y1) in pixels of the garment's projected vertices, then of its mirror's
 
 
 def _round_up(n: float, granule: int = 1024) -> int:
@@ -149,6 +152,51 @@ def _extents(ph: Pinhole, vertices: Array, triangles: Array) -> Array:
 def _extent(ph: Pinhole, vertices: Array, triangles: Array) -> Array:
     """The largest projected bounding box of a triangle, in pixels."""
     return jnp.max(_extents(ph, vertices, triangles))
+
+
+def _box(bounds: np.ndarray, ph: Pinhole, margin: float) -> tuple[int, int, int, int]:
+    """The pixel rectangle (x0, y0, w, h) around `bounds` (x0, y0, x1, y1), `margin` x its size
+    wider on every side, clipped to the image (full width/height if it misses the image)."""
+    x0, y0, x1, y1 = (float(b) for b in bounds)
+    mx, my = margin * (x1 - x0), margin * (y1 - y0)
+    lo = (max(0, int(math.floor(x0 - mx))), max(0, int(math.floor(y0 - my))))
+    hi = (min(ph.width, int(math.ceil(x1 + mx))), min(ph.height, int(math.ceil(y1 + my))))
+    if hi[0] <= lo[0] or hi[1] <= lo[1]:
+        return 0, 0, ph.width, ph.height
+    return lo[0], lo[1], hi[0] - lo[0], hi[1] - lo[1]
+
+
+def _bounds(ph: Pinhole, vertices: Array) -> Array:
+    px, _ = ph.project(vertices)
+    return jnp.stack([jnp.min(px[:, 0]), jnp.min(px[:, 1]), jnp.max(px[:, 0]), jnp.max(px[:, 1])])
+
+
+def _inside(bounds, box: tuple[int, int, int, int], ph: Pinhole) -> bool:
+    """Whether the projected `bounds` lie in `box` (or the box is clipped by the image there)."""
+    x0, y0, w, h = box
+    b = [float(v) for v in bounds]
+    return ((b[0] >= x0 or x0 == 0) and (b[1] >= y0 or y0 == 0) and (b[2] <= x0 + w or x0 + w == ph.width)
+            and (b[3] <= y0 + h or y0 + h == ph.height))
+
+
+def _cropped(ph: Pinhole, box: tuple[int, int, int, int]) -> Pinhole:
+    """The camera restricted to the pixel rectangle `box`: the same rays for those pixels."""
+    x0, y0, w, h = box
+    return Pinhole(ph.origin, ph.rotation, ph.fx, ph.fy, ph.cx - x0, ph.cy - y0, w, h)
+
+
+def _placed(a: Array, box: tuple[int, int, int, int], ph: Pinhole, fill) -> Array:
+    """An image of `box` placed in the full image, `fill` around it."""
+    x0, y0, w, h = box
+    pad = ((y0, ph.height - y0 - h), (x0, ph.width - x0 - w)) + ((0, 0),) * (a.ndim - 2)
+    return jnp.pad(a, pad, constant_values=fill)
+
+
+def _full_index(index: Array, box: tuple[int, int, int, int], ph: Pinhole) -> Array:
+    """Flat pixel indices in `box` as flat indices of the full image (out-of-box padding -> H W)."""
+    x0, y0, w, h = box
+    full = (index // w + y0) * ph.width + index % w + x0
+    return jnp.where(index >= w * h, ph.width * ph.height, full)
 
 
 def _fire_depth_maps(rig: MotionRig, x: Array, triangles: Array) -> tuple[list[ShadowMap], Array, Array]:
@@ -262,6 +310,12 @@ def prepare_motion(scene: NohScene, cloth: DrapedCloth, motion: BodyMotion, *, k
 
     gb = rasterize(ph, cloth.state.x, tris, cloth.uv.reshape(-1, 2), window=window)
     count = int(np.sum(np.asarray(gb.hit) > 0))
+    # the G-buffers are rasterized in the rectangles around the garment and its mirror image only
+    # (25% of their size wider on every side for the dance: it sways ~15% of that; `grown` widens
+    # them if a frame leaves them)
+    x0 = cloth.state.x
+    view_box = _box(np.asarray(_bounds(ph, x0)), ph, 0.25)
+    mirror_box = _box(np.asarray(_bounds(ph, x0 * jnp.asarray([1.0, -1.0, 1.0], dtype))), ph, 0.25)
     steps = max(1, int(round(frame_dt / cloth.dt)))
     return MotionRig(cloth, motion, ph, floor, floor_uv, shadow_points, shadow_index, half_down.astype(dtype),
                      floor_static, coat,
@@ -269,7 +323,8 @@ def prepare_motion(scene: NohScene, cloth: DrapedCloth, motion: BodyMotion, *, k
                      jnp.asarray(light_pos, dtype),
                      jnp.asarray(light_rot, dtype), float(tan_c), window, shadow_window, large_window, 64,
                      shadow_resolution,
-                     _round_up(1.15 * count), _round_up(0.4 * count), steps, float(near), float(roughness))
+                     _round_up(1.15 * count), _round_up(0.4 * count), steps, float(near), float(roughness),
+                     view_box, mirror_box)
 
 
 def _compact(mask: Array, capacity: int) -> tuple[Array, Array, Array]:
@@ -345,22 +400,29 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
     uv = cloth.uv.reshape(-1, 2)
     up = jnp.asarray([0.0, 1.0, 0.0], dtype)
 
-    # what the camera sees: the garment in front of the floor plane
-    gb = rasterize(ph, x, cloth.triangles, uv, window=rig.window)
-    garment = (gb.hit > 0) & (gb.distance < rig.t_floor)
-    g_scatter, g_gather, g_count = _compact(garment, rig.capacity)
+    # what the camera sees: the garment in front of the floor plane (rasterized in its box)
+    vb, mb = rig.view_box, rig.mirror_box
+    gb = rasterize(_cropped(ph, vb), x, cloth.triangles, uv, window=rig.window)
+    in_box = (gb.hit > 0) & (gb.distance < rig.t_floor[vb[1]:vb[1] + vb[3], vb[0]:vb[0] + vb[2]])
+    g_scatter, g_gather, g_count = _compact(in_box, rig.capacity)
     points = garment_points(ph, geo, gb, g_gather)
+    g_scatter = _full_index(g_scatter, vb, ph)
+    garment = _placed(in_box, vb, ph, False)
+    g_distance = _placed(gb.distance, vb, ph, jnp.inf)
 
     # shadow maps of this pose from every fire, PCSS at every garment, floor and reflected point
     maps, shadow_extent, shadow_large = _fire_depth_maps(rig, x, cloth.triangles)
 
     # the mirrored garment: what the floor reflects, as real garment points seen from the floor
     mv, mn, mt = mirror_mesh(x, normals, cloth.triangles, jnp.zeros(3, dtype), up)
-    gbr = rasterize(ph, mv, mt, uv, window=rig.window)
-    reflects = (gbr.hit > 0) & (rig.floor_coat > 0) & ~garment
+    gbr = rasterize(_cropped(ph, mb), mv, mt, uv, window=rig.window)
+    in_mirror = (slice(mb[1], mb[1] + mb[3]), slice(mb[0], mb[0] + mb[2]))
+    reflects = (gbr.hit > 0) & (rig.floor_coat[in_mirror] > 0) & ~garment[in_mirror]
     r_scatter, r_gather, r_count = _compact(reflects, rig.reflection_capacity)
     mirror = eqx.tree_at(lambda s: (s.vertices, s.vertex_normals, s.triangles), scene, (mv, mn, mt))
     mirrored = _mirror_back(garment_points(ph, mirror, gbr, r_gather), up)
+    r_scatter = _full_index(r_scatter, mb, ph)
+    r_distance = _placed(gbr.distance, mb, ph, jnp.inf)      # inf where it reflects no garment
 
     n_g = points.position.shape[0]
     vis = fire_visibility(maps, jnp.concatenate([points.position, mirrored.position]), rig.near)
@@ -380,11 +442,10 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
     f_rad = floor_firelight(rig, samples, fire_visibility(maps, rig.shadow_points, rig.near)) + rig.floor_static
 
     # the reflection: mirrored sky, garment and flames, blurred by the roughness, times Fresnel
-    beyond = jnp.where(gbr.hit > 0, gbr.distance - rig.t_floor, FAR_BEYOND)
+    beyond = jnp.where(jnp.isfinite(r_distance), r_distance - rig.t_floor, FAR_BEYOND)
     reflected = rig.mirrored_sky.reshape(h * w, 3).at[r_scatter].set(r_rad, mode="drop").reshape(h, w, 3)
-    t_stop = jnp.where(gbr.hit > 0, gbr.distance, jnp.inf)
     m_index = rig.mirrored_flames.index
-    reflected = reflected.reshape(h * w, 3).at[m_index].add(_flames(rig.mirrored_flames, emission, t_stop))
+    reflected = reflected.reshape(h * w, 3).at[m_index].add(_flames(rig.mirrored_flames, emission, r_distance))
     reflected = reflected.reshape(h, w, 3)
     cos = jnp.clip(-rig.rays[..., 1], 0.0, 1.0)
     focal = ph.fy
@@ -397,10 +458,11 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
     f_idx = rig.floor.index
     img = img.at[f_idx].set(f_rad * (1 - fresnel.reshape(-1)[f_idx])[:, None] + mirror_light.reshape(-1, 3)[f_idx])
     img = img.at[g_scatter].set(g_rad, mode="drop")
-    surface_t = jnp.where(garment, gb.distance, rig.t_floor)
+    surface_t = jnp.where(garment, g_distance, rig.t_floor)
     img = img.at[rig.flames.index].add(_flames(rig.flames, emission, surface_t)).reshape(h, w, 3)
     view_extent = jnp.maximum(_extent(ph, x, cloth.triangles), _extent(ph, mv, mt))
-    counts = FrameCounts(garment, g_count, r_count, view_extent, shadow_extent, shadow_large)
+    counts = FrameCounts(garment, g_count, r_count, view_extent, shadow_extent, shadow_large,
+                         jnp.concatenate([_bounds(ph, x), _bounds(ph, mv)]))
     return img, state, counts
 
 
@@ -418,6 +480,14 @@ def grown(rig: MotionRig, counts: FrameCounts) -> MotionRig | None:
         changes["window"] = _pow2(float(counts.view_extent))
     if float(counts.shadow_extent) > rig.large_window:
         changes["large_window"] = _pow2(float(counts.shadow_extent))
+    bounds = np.asarray(counts.bounds)
+    for name, b in (("view_box", bounds[:4]), ("mirror_box", bounds[4:])):
+        old = getattr(rig, name)
+        if not _inside(b, old, rig.pinhole):   # the union of the old box and the new one
+            new = _box(b, rig.pinhole, 0.25)
+            lo = (min(old[0], new[0]), min(old[1], new[1]))
+            changes[name] = (*lo, max(old[0] + old[2], new[0] + new[2]) - lo[0],
+                             max(old[1] + old[3], new[1] + new[3]) - lo[1])
     if int(counts.shadow_large) > rig.large_capacity:
         changes["large_capacity"] = _round_up(1.25 * int(counts.shadow_large), 64)
     if not changes:
