@@ -7,9 +7,18 @@ frame's state (`sims.advance_cloth`, `steps` steps of the cloth's dt), then ever
 depends on the geometry follows it in the same jitted call (`moving_frame`): the rasterized
 G-buffer and the garment's pixels (compacted into a fixed capacity), mip selection from their uv
 derivatives, the garment's depth map from each fire and PCSS for every garment point and for the
-floor (on a half-resolution grid read back bilinearly: the floor's shadows are soft),
-I_static of the garment (K_env environment samples) and the firelight (K_f samples of the
+floor, I_static of the garment (K_env environment samples) and the firelight (K_f samples of the
 frame's flames), and the reflection in the floor.
+
+What keeps that within about a second on two CPU cores, each exact or measured:
+- the G-buffers are rasterized in boxes around the garment and its mirror image (`view_box`,
+  `mirror_box`), not the whole image (the same pixels; `grown` widens a box the dance leaves);
+- the fires' depth maps rasterize most triangles in a small window and the dance's few large
+  ones in a large one, the two maps combined by their minimum (`_fire_depth_maps`: the same map);
+- the floor's firelight is its irradiance (PCSS included) on a half-resolution grid of its pixels,
+  read back bilinearly, times rho_d per pixel (`floor_firelight`; the floor is Lambertian here);
+- the flames and their mirror images are looked up only at the pixels they can cover (found
+  once: the camera and the fires stand still).
 
 The polished stage floor: the garment and the flames are mirrored in the floor plane
 (`jaxrender.fabric.mirror_mesh`) and rasterized/intersected with the camera's own rays; every
