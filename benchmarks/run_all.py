@@ -2,7 +2,8 @@
 
     python benchmarks/run_all.py --quick        # every script with --quick (small sizes): do they
                                                 # still run? writes nothing into RESULTS.md or results/:
-                                                # their result rows go to a scratch directory, checked
+                                                # their result rows go to a scratch directory, checked;
+                                                # compiles cached in ~/.cache/jaxrender-bench-quick
     python benchmarks/run_all.py                # every script at full size (long), then the table
     python benchmarks/run_all.py --table-only   # rebuild the table from benchmarks/results/*.json
     python benchmarks/run_all.py --only horizon_speed,fit_speed   # a subset, then the table
@@ -55,12 +56,22 @@ def _fingerprint() -> dict[str, str]:
     return {str(p.relative_to(HERE)): hashlib.sha256(p.read_bytes()).hexdigest() for p in paths if p.is_file()}
 
 
+def quick_compile_cache() -> str:
+    """JAX's persistent compilation cache for --quick runs: $JAX_COMPILATION_CACHE_DIR if set, else
+    ~/.cache/jaxrender-bench-quick. Compiles are most of a smoke run's time; a warm cache halved the CPU time
+    of the whole run (290 -> 156 s, 2026-11-24). Keyed by JAX on the program, the options and the versions."""
+    return os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(
+        Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "jaxrender-bench-quick")
+
+
 def run_script(path: Path, quick: bool, timeout: float | None, results_dir: Path | None = None,
-               ) -> tuple[str, int, float, float, str]:
+               compile_cache: str | None = None) -> tuple[str, int, float, float, str]:
     """(name, exit code, wall seconds, CPU seconds of the script and every process it started, output tail)."""
     env = dict(os.environ)
     if quick:
         env["BENCH_NO_RESULTS"] = "1"
+    if compile_cache:
+        env["JAX_COMPILATION_CACHE_DIR"] = compile_cache
     if results_dir is not None:  # the scripts' result rows go there instead (`_results.write_results`)
         env["BENCH_RESULTS_DIR"] = str(results_dir)
     cmd = [sys.executable, str(path)] + (["--quick"] if quick else [])
@@ -169,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--jobs", type=int, default=2 if "--quick" in (argv or sys.argv) else 1,
                         help="scripts at once (default 2 with --quick, else 1 so timings do not compete)")
     parser.add_argument("--timeout", type=float, default=None, help="seconds per script (default 170 quick, none)")
+    parser.add_argument("--no-compile-cache", action="store_true",
+                        help="--quick: without JAX's persistent compilation cache (see quick_compile_cache)")
     parser.add_argument("--results-dir", type=Path, default=None,
                         help="--quick: where the scripts write their result rows (default: a temporary directory)")
     args = parser.parse_args(argv)
@@ -189,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     scratch = tempfile.TemporaryDirectory() if args.quick and args.results_dir is None else None
     results_dir = Path(scratch.name) if scratch else args.results_dir
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        outcomes = list(pool.map(lambda p: run_script(p, args.quick, timeout, results_dir), todo))
+        cache = quick_compile_cache() if args.quick and not args.no_compile_cache else None
+        outcomes = list(pool.map(lambda p: run_script(p, args.quick, timeout, results_dir, cache), todo))
     failed = [o for o in outcomes if o[1] != 0]
     for name, code, secs, cpu, _ in sorted(outcomes):
         print(f"{'ok  ' if code == 0 else 'FAIL'} {name:28s} {secs:6.1f} s wall {cpu:6.1f} s CPU"
