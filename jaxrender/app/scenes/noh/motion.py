@@ -445,9 +445,10 @@ def moving_frame(scene: NohScene, rig: MotionRig, state: ClothState, emission: F
         return _with_light(shared_light(rig.env_direction, rig.env_weight, p.position.shape[0]),
                            fire_light(samples, p.position, v, n_fires))
 
-    both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), points, mirrored)
-    lit = shade_garment(scene.mats, both, garment_light(both, vis), blend=blend)
-    g_rad, r_rad = lit[:n_g], lit[n_g:]
+    g_rad = shade_garment(scene.mats, points, garment_light(points, vis[:n_g]), blend=blend)
+    # the reflected garment at its nearest mip level (half the shading): blurred by the floor's
+    # roughness and weighted by F = 0.04-0.3, the blend between two levels is not seen there
+    r_rad = shade_garment(scene.mats, mirrored, garment_light(mirrored, vis[n_g:]), blend="nearest")
     f_rad = floor_firelight(rig, samples, fire_visibility(maps, rig.shadow_points, rig.near)) + rig.floor_static
 
     # the reflection: mirrored sky, garment and flames, blurred by the roughness, times Fresnel
