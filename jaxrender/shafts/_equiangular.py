@@ -201,6 +201,11 @@ def active_rays_map(scatter, dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"],
     return image.reshape((-1, 3))[:n].reshape(shape + (3,))
 
 
+def shadow_maps(scene: ShaftsScene, resolution: int) -> tuple:
+    """Every light's shadow map (`render_shadow_map`)."""
+    return tuple(render_shadow_map(light, scene.prims, resolution=resolution) for light in scene.lights)
+
+
 def primary_hits(scene: ShaftsScene):
     """(dirs, t, normals, albedo, points) of the camera's primary rays (t = inf on a miss)."""
     eye = scene.camera.eye
@@ -234,7 +239,8 @@ def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int
     # stored once: XLA on CPU otherwise recasts the primary rays inside each of their consumers
     dirs, t_hit, normals, albedo, points = materialize(primary_hits, scene)
     res = scene.render.shadow_map if shadow_map is None else int(shadow_map)
-    maps = tuple(render_shadow_map(light, scene.prims, resolution=res) for light in scene.lights)
+    # stored too: else each surface lookup recasts its texel's ray (XLA fuses the map into the gather)
+    maps = materialize(functools.partial(shadow_maps, resolution=res), scene)
     visibility = surface_visibility(scene, maps, surface_shadows)
     surface = surface_term(scene, points, normals, albedo, t_hit, visibility)
     surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
