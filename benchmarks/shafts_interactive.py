@@ -81,17 +81,20 @@ def rel(x, ref):
     return float(np.linalg.norm(np.asarray(x, np.float64) - ref) / np.linalg.norm(ref))
 
 
-def method_fn(method, setting):
-    """A jitted frame returning (image, in-scattered part)."""
+def method_fn(method, setting, *, parts: bool):
+    """A jitted frame: the image as `jaxrender shafts` renders it (parts=False, the one timed), or
+    (image, in-scattered part) for the error (parts=True: per-light images kept, not timed)."""
     if method == "equiangular":
         n, sm = setting
-        body = lambda s: render_equiangular(s, samples=n, shadow_map=sm, return_parts=True)  # noqa: E731
+        body = lambda s: render_equiangular(s, samples=n, shadow_map=sm, return_parts=parts)  # noqa: E731
     elif method == "raymarch":
-        body = lambda s: render_raymarch(s, samples=setting, return_parts=True)  # noqa: E731
+        body = lambda s: render_raymarch(s, samples=setting, return_parts=parts)  # noqa: E731
     else:
         n, m, gpp = setting
         body = lambda s: render_planes(s, planes=n, subplanes=m, g_per_pixel=gpp, tables=not gpp,  # noqa: E731
-                                       return_parts=True)
+                                       return_parts=parts)
+    if not parts:
+        return jax.jit(body)
 
     def frame(s):
         image, (surface, fog) = body(s)
@@ -113,9 +116,9 @@ def label(method, setting):
 def sweep(name, scene, ref, settings, repeats):
     rows = []
     for method, setting in settings:
-        fn = method_fn(method, setting)
-        (image, fog), c, wall, cpu = frame_times(fn, scene, repeats)
+        image, fog = method_fn(method, setting, parts=True)(scene)
         err = rel(fog, ref)
+        _, c, wall, cpu = frame_times(method_fn(method, setting, parts=False), scene, repeats)
         rows.append(dict(scene=name, method=method, setting=label(method, setting), err=err, compile_s=c,
                          min_s=min(wall), median_s=statistics.median(wall), max_s=max(wall), cpu_s=cpu,
                          image=np.asarray(image)))

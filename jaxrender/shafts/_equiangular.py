@@ -156,7 +156,8 @@ def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: 
 
 
 def active_rays_map(scatter, dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"], t1: Float[Array, "*B"], *,
-                    chunk: int = 8192, block: int = 32) -> Float[Array, "*B 3"]:
+                    chunk: int = 8192, block: int = 32, into: Float[Array, "*B 3"] | None = None
+                    ) -> Float[Array, "*B 3"]:
     """scatter(dirs, t0, t1) (-> (*B, 3), zero where t1 <= t0) evaluated only where needed: the
     rays are cut into runs of `block` consecutive pixels, the runs holding a ray with t1 > t0 are
     compacted to the front (`jnp.nonzero` with a static size), evaluated `chunk` rays at a time
@@ -167,7 +168,8 @@ def active_rays_map(scatter, dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"],
     evaluated in vain where a cone's edge crosses it. The earlier tiles of 24 x 40 pixels, each its
     own loop iteration of ~30 small kernels, cost 0.1 s per light of loop overhead on the five-spot
     stage; <= 43 chunks of 8192 rays at 720 x 480 make it vanish. Reverse mode recomputes each chunk
-    instead of stacking its intermediates."""
+    instead of stacking its intermediates. `into`: add the result to this image instead of zeros
+    (the frame accumulates its lights in one buffer)."""
     shape = t0.shape
     n = t0.size
     block = int(min(block, n))
@@ -197,7 +199,9 @@ def active_rays_map(scatter, dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"],
     out = jax.lax.map(one_chunk, (first, runs))
     valid = (jnp.arange(n_chunks * per_chunk) < count).reshape((n_chunks, per_chunk))
     target = jnp.where(valid, runs, n_runs).reshape((-1,))  # index n_runs: dropped
-    image = jnp.zeros((n_runs, block, 3), out.dtype).at[target].add(out.reshape((-1, block, 3)), mode="drop")
+    base = (jnp.zeros((n_runs, block, 3), out.dtype) if into is None
+            else jnp.pad(into.reshape((-1, 3)), ((0, pad), (0, 0))).reshape((n_runs, block, 3)))
+    image = base.at[target].add(out.reshape((-1, block, 3)), mode="drop")
     return image.reshape((-1, 3))[:n].reshape(shape + (3,))
 
 
@@ -246,7 +250,7 @@ def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int
     surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
     bias = scene.render.shadow_bias
 
-    per_light = []
+    per_light, image = [], surface
     for light, sm in zip(scene.lights, maps):
         depth = jax.lax.stop_gradient(sm.depth)
         baked = bake_light_map(light, bake=bake)
@@ -254,9 +258,15 @@ def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int
         t0, t1 = materialize(functools.partial(cone_intervals, scene, light), dirs, surface_t, reach)
         scatter = functools.partial(equiangular_scattering, light, depth, baked, eye, rho=rho, kappa=kappa, K=K,
                                     bias=bias, samples=samples)
-        per_light.append(active_rays_map(scatter, dirs, t0, t1, chunk=chunk) if prune else scatter(dirs, t0, t1))
+        if not prune:
+            per_light.append(scatter(dirs, t0, t1))
+        elif return_parts:
+            per_light.append(active_rays_map(scatter, dirs, t0, t1, chunk=chunk))
+        else:  # one buffer for all lights (no per-light image to add up)
+            image = active_rays_map(scatter, dirs, t0, t1, chunk=chunk, into=image)
 
-    image = surface + sum(per_light)
+    if per_light:
+        image = surface + sum(per_light)
     if return_parts:
         return image, (surface, per_light)
     return image
