@@ -208,6 +208,7 @@ def plot(rows, path):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for ax, name in zip(axes, ("stage", "spot")):
@@ -221,7 +222,8 @@ def plot(rows, path):
         ax.axhline(100 * TARGET, color="k", lw=0.8, ls="--")
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("median CPU seconds per frame (both cores; the machine was shared)")
+        ax.set_xlabel("median CPU seconds per frame (both cores)")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # overlapping minor labels
         ax.set_ylabel("relative RMS of in-scattered light (%)")
         ax.set_title(name)
         ax.legend()
