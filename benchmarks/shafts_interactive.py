@@ -297,23 +297,30 @@ def main(argv=None) -> int:
         return "met" if ok else "missed"
 
     results = []
-    spot_eq, stage_eq, stage_rm = summary.get(("spot", "equiangular")), summary[("stage", "equiangular")], \
-        summary[("stage", "raymarch")]
-    if spot_eq:
-        results.append(dict(issue="13 light shafts", target="textured spot + sphere + floor 720x480 <= 40 ms at <= 2 %",
-                            measured=f"{1e3 * spot_eq['median_s']:.0f} ms wall, {1e3 * spot_eq['cpu_s']:.0f} ms CPU "
-                                     f"({spot_eq['setting']}, {100 * spot_eq['err']:.2f} %)",
-                            status=verdict(spot_eq["median_s"] <= 0.04)))
-    if stage_eq:
-        results.append(dict(issue="13 light shafts", target="five-spot stage 720x480 <= 0.17 s at <= 2 %",
-                            measured=f"{stage_eq['median_s']:.3f} s wall, {stage_eq['cpu_s']:.3f} s CPU "
-                                     f"({stage_eq['setting']}, {100 * stage_eq['err']:.2f} %)",
-                            status=verdict(stage_eq["median_s"] <= 0.17)))
+    spot_target = "textured spot + sphere + floor 720x480 <= 40 ms at <= 2 %"
+    stage_target = "five-spot stage 720x480 <= 0.17 s at <= 2 %"
+    for name, target, limit in (("spot", spot_target, 0.04), ("stage", stage_target, 0.17)):
+        if name not in scenes:
+            continue
+        best = summary[(name, "equiangular")]
+        if best is None:  # a row all the same: "no setting reached 2 %" is a result too
+            lowest = min(r["err"] for r in rows if r["scene"] == name and r["method"] == "equiangular")
+            results.append(dict(issue="13 light shafts", target=target, status="missed",
+                                measured=f"no equiangular setting reached 2 % (lowest {100 * lowest:.2f} %)"))
+            continue
+        results.append(dict(issue="13 light shafts", target=target,
+                            measured=f"{best['median_s']:.3f} s wall, {best['cpu_s']:.3f} s CPU "
+                                     f"({best['setting']}, {100 * best['err']:.2f} %)",
+                            status=verdict(best["median_s"] <= limit)))
+    stage_eq, stage_rm = summary[("stage", "equiangular")], summary[("stage", "raymarch")]
     if stage_eq and stage_rm:
         ratio = stage_rm["median_s"] / stage_eq["median_s"]
-        results.append(dict(issue="13 light shafts", target=">= 17x the ray march at 2 % on the stage",
-                            measured=f"{ratio:.2f}x wall, {stage_rm['cpu_s'] / stage_eq['cpu_s']:.2f}x CPU "
-                                     f"(ray march {stage_rm['setting']})", status=verdict(ratio >= 17)))
+        ratio_text = (f"{ratio:.2f}x wall, {stage_rm['cpu_s'] / stage_eq['cpu_s']:.2f}x CPU "
+                      f"(ray march {stage_rm['setting']})")
+    else:
+        ratio, ratio_text = 0.0, "no ratio: a method reached 2 % at none of its settings"
+    results.append(dict(issue="13 light shafts", target=">= 17x the ray march at 2 % on the stage",
+                        measured=ratio_text, status=verdict(ratio >= 17)))
     if grad:
         results.append(dict(issue="13 light shafts", target="gradient <= 4x forward",
                             measured=f"{grad['ratio_wall']:.2f}x wall, {grad['ratio_cpu']:.2f}x CPU (spot scene)",
