@@ -41,7 +41,7 @@ def dot(a: Float[ArrayLike, "... D"], b: Float[ArrayLike, "... D"]) -> Float[Arr
     if a.shape[-1:] == b.shape[-1:] and a.shape[-1] in (2, 3):
         # Written out: XLA on CPU vectorizes this elementwise form, while a reduction over a
         # minor axis of length 3 runs ~10-100x slower (measured on the BRDF and its Jacobian;
-        # length 2, the spot light's |w.xy|: ~8 ms per light and 720 x 480 frame)
+        # length 2, the spot light's |w.xy|: the five-spot stage's surface pass 0.092 -> 0.084 s CPU)
         return functools.reduce(jnp.add, [a[..., i] * b[..., i] for i in range(a.shape[-1])])
     return jnp.sum(a * b, axis=-1)
 

@@ -163,8 +163,8 @@ def active_rays_map(scatter, dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"],
     compacted to the front (`jnp.nonzero` with a static size), evaluated `chunk` rays at a time
     under `lax.map` (a chunk past the active count is skipped by `lax.cond`) and scattered back.
     Same values as scatter on every ray, at the cost of the active runs only. Runs, not single rays:
-    compacting and scattering back whole runs moves contiguous memory (per-ray compaction cost
-    ~13 ms per light at 720 x 480 on CPU, runs of 32 ~2 ms), and at most a run's worth of rays is
+    compacting and scattering back whole runs moves contiguous memory (around an empty kernel at
+    720 x 480, CPU: per-ray compaction 13 ms per light, runs of 32 6 ms), and at most a run's worth of rays is
     evaluated in vain where a cone's edge crosses it. The earlier tiles of 24 x 40 pixels, each its
     own loop iteration of ~30 small kernels, cost 0.1 s per light of loop overhead on the five-spot
     stage; <= 43 chunks of 8192 rays at 720 x 480 make it vanish. Reverse mode recomputes each chunk
