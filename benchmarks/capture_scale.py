@@ -3,7 +3,8 @@
     python benchmarks/capture_scale.py                  # 1024x1024 and 256x256, 540 lights x 2 exposures
     python benchmarks/capture_scale.py --sizes 256      # the 256x256 part only
     python benchmarks/capture_scale.py --quick          # 32x32 x 60 lights: a smoke run, nothing recorded
-                                                        # (ingest and fit: no speed comparison, no Dask)
+                                                        # (ingest and fit: no pyramid, no speed comparison,
+                                                        # no Dask)
 
 A synthetic capture as the issue's user had (8-bit PNG, 2 exposures: 1/640 s and 1/125 s, 540 of
 the paper's light directions, `fitting.synth` maps and sensor) is written once under --root and
@@ -220,7 +221,7 @@ def compare_truth(a: dict, truth) -> dict:
 
 
 def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, dask: tuple[int, ...],
-             steps: list) -> dict:
+             steps: list, pyramid: bool = True) -> dict:
     t0 = time.perf_counter()
     cap = write_capture(root, size, n_lights)
     print(f"capture {size}x{size}x{n_lights}: {cap} ({time.perf_counter() - t0:.0f} s to write or find)", flush=True)
@@ -232,7 +233,9 @@ def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, da
         shutil.rmtree(path, ignore_errors=True)
     steps.append(measure(f"{tag} ingest float16", [*FITTING, "ingest", str(cap), "--store", str(store16)], env))
     out["store16_bytes"] = sum(p.stat().st_size for p in store16.rglob("*") if p.is_file())
-    steps.append(measure(f"{tag} fit store (+pyramid)", [*FITTING, "fit", str(store16), "--out", str(btf16)], env))
+    steps.append(measure(f"{tag} fit store" + (" (+pyramid)" if pyramid else " (no pyramid)"),
+                         [*FITTING, "fit", str(store16), "--out", str(btf16)] + ([] if pyramid else ["--no-pyramid"]),
+                         env))
     manifest, level16 = _btf(btf16)
     out["fit_seconds"] = manifest["fit"]["seconds"]
     out["fit_cpu_seconds"] = manifest["fit"].get("cpu_seconds")
@@ -314,7 +317,7 @@ def main() -> None:
     parser.add_argument("--lights", type=int, default=540)
     parser.add_argument("--root", type=Path, default=Path(tempfile.gettempdir()) / "capture_scale")
     parser.add_argument("--quick", action="store_true",
-                        help="32x32 x 60 lights, ingest + fit only, nothing recorded")
+                        help="32x32 x 60 lights, ingest + fit (no pyramid) only, nothing recorded")
     args = parser.parse_args()
     sizes, n_lights = ([32], 60) if args.quick else (args.sizes, args.lights)
     args.root.mkdir(parents=True, exist_ok=True)
@@ -329,10 +332,11 @@ def main() -> None:
     results = []
     for size in sizes:
         small = size <= 256
-        # quick (a smoke run; each step is a process that imports JAX): ingest and fit only (the Dask fit has
-        # its own test, tests/test_dask_fit.py)
+        # quick (a smoke run; each step is a process that imports JAX): ingest and fit only, no EM pyramid (its
+        # compile was most of the quick run; em_pyramid --quick runs the EM, tests/test_dask_fit.py the Dask fit)
         results.append(run_size(args.root, size, n_lights, env, speed=small and not args.quick,
-                                dask=(1, 2) if small and not args.quick else (), steps=steps))
+                                dask=(1, 2) if small and not args.quick else (), steps=steps,
+                                pyramid=not args.quick))
     report = {"sizes": results, "steps": steps, "load_end": os.getloadavg()}
     big = max(results, key=lambda r: r["size"])
     if big.get("fit_cpu_seconds"):

@@ -17,8 +17,9 @@ What is timed (compile time apart, `block_until_ready`, median of repeats):
 Process CPU time per frame is printed too: on a shared machine it is the stable figure (an idle
 2-core machine runs a frame in about CPU time / 2 when both cores are busy).
 
-Run: `python benchmarks/noh_frame.py` (720x480) or `--quick` (180x120, 2 repeats, 3 frames: smoke run). Writes the last
-frame to benchmarks/figures/noh_frame.png (`--quick`: noh_frame_quick.png, not committed).
+Run: `python benchmarks/noh_frame.py` (720x480) or `--quick` (180x120, 8^2 level-0 BTFs without EM levels, 2 repeats,
+3 frames: smoke run). Writes the last frame to benchmarks/figures/noh_frame.png (`--quick`: noh_frame_quick.png, not
+committed).
 
 `--moving` (issue 17): the moving garment instead, everything per frame in one jitted call
 (`jaxrender.app.scenes.noh.motion.moving_frame`: 200 cloth steps, G-buffers of the garment and
@@ -59,11 +60,14 @@ def main() -> None:
     from jaxrender.app.scenes import noh
 
     t = time.perf_counter()
-    btfs = noh.default_btfs(size=32, pyramid="em")
+    # quick: level 0 only, no EM fits (their compile was half the smoke run's; em_pyramid --quick runs the EM)
+    btfs = noh.default_btfs(size=8, pyramid="none") if args.quick else noh.default_btfs(size=32, pyramid="em")
     env = noh.default_environment()
     scene = noh.noh_scene(width=width, height=height, frames=n_frames, btfs=btfs, env=env)
     setup_s = time.perf_counter() - t
-    two_lobe = float(np.mean([float(np.mean(np.asarray(lv.weight) > 0)) for lv in btfs["brocade"][1:]]))
+    two_lobe = (f"EM levels; brocade levels 1.. two-lobe fraction "
+                f"{np.mean([float(np.mean(np.asarray(lv.weight) > 0)) for lv in btfs['brocade'][1:]]):.2f}"
+                if len(btfs["brocade"]) > 1 else "level 0 only, no EM levels")
 
     t = time.perf_counter()
     prep = jax.block_until_ready(noh.prepare_noh(scene, key=jax.random.key(1)))
@@ -104,9 +108,8 @@ def main() -> None:
     rows = [
         ("resolution", f"{width}x{height}"),
         ("garment / floor pixels", f"{prep.garment.position.shape[0]} / {prep.floor.position.shape[0]}"),
-        ("K_env + K_fire, lobes", "20 + 20, 2 (EM levels; brocade levels 1.. two-lobe fraction "
-                                  f"{two_lobe:.2f})"),
-        ("scene setup (cloth sim, sky, flames, EM pyramids; incl. compile) s", f"{setup_s:.2f}"),
+        ("K_env + K_fire, lobes", f"20 + 20, 2 ({two_lobe})"),
+        ("scene setup (cloth sim, sky, flames, BTF levels; incl. compile) s", f"{setup_s:.2f}"),
         ("static part: compile + first run s", f"{static_compile_s:.2f}"),
         ("static part (per sequence), median s", f"{static_med:.3f}"),
         ("frame: compile + first run s", f"{frame_compile_s:.2f}"),

@@ -193,6 +193,17 @@ def gradient_ratio(scene, samples, repeats):
                 ratio_wall=statistics.median(wall_g) / statistics.median(wall_f), ratio_cpu=cpu_g / cpu_f)
 
 
+def stage_ratio_row(eq, rm):
+    """The result row of the ray march's time over ours on the stage, each at its cheapest setting reaching 2 %."""
+    if eq and rm:
+        ratio = rm["median_s"] / eq["median_s"]
+        text = f"{ratio:.2f}x wall, {rm['cpu_s'] / eq['cpu_s']:.2f}x CPU (ray march {rm['setting']})"
+    else:
+        ratio, text = 0.0, "no ratio: a method reached 2 % at none of its settings"
+    return dict(issue="13 light shafts", target=">= 17x the ray march at 2 % on the stage", measured=text,
+                status="met" if ratio >= 17 else "missed")
+
+
 def reference(name, scene, samples):
     size = f"{scene.camera.width}x{scene.camera.height}"
     cache = Path(os.environ.get("TMPDIR", "/tmp")) / f"shafts_ref_{name}_{size}_{samples}.npy"
@@ -228,8 +239,9 @@ def plot(rows, path):
         ax.set_xlabel("median CPU seconds per frame (both cores)")
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # overlapping minor labels
         ax.set_ylabel("relative RMS of in-scattered light (%)")
-        ax.set_title(name)
-        ax.legend()
+        ax.set_title(name if name in {r["scene"] for r in rows} else f"{name} (not run)")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -237,7 +249,7 @@ def plot(rows, path):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true",
-                        help="smoke test: 120x80, the stage only, one setting per method, no gradient")
+                        help="smoke test: 120x80, the spot scene only, one setting per method, no gradient")
     parser.add_argument("--size", default="720x480")
     parser.add_argument("--ref-samples", type=int, default=256)
     parser.add_argument("--repeats", type=int, default=3)
@@ -247,8 +259,8 @@ def main(argv=None) -> int:
     print(f"{os.cpu_count()} CPU cores, JAX {jax.__version__} ({jax.default_backend()}), float32, {w}x{h}, "
           f"load average {os.getloadavg()}", flush=True)
     scenes = {"spot": spot_scene(w, h), "stage": load_stage_scene(width=w, height=h)}
-    if args.quick:  # a smoke run: the stage, one setting per method (each setting and each piece is a compile)
-        scenes = {"stage": scenes["stage"]}
+    if args.quick:  # a smoke run: the one-light textured spot (the compile grows with the lights), one setting per
+        scenes = {"spot": scenes["spot"]}  # method (each setting and each piece of the profile is a compile)
         eq, rm, pl = [(16, 512)], (16,), [(8, 4, True)]
     else:
         eq = [(n, 512) for n in (8, 12, 16, 24, 32)] + [(24, None)]
@@ -315,15 +327,8 @@ def main(argv=None) -> int:
                             measured=f"{best['median_s']:.3f} s wall, {best['cpu_s']:.3f} s CPU "
                                      f"({best['setting']}, {100 * best['err']:.2f} %)",
                             status=verdict(best["median_s"] <= limit)))
-    stage_eq, stage_rm = summary[("stage", "equiangular")], summary[("stage", "raymarch")]
-    if stage_eq and stage_rm:
-        ratio = stage_rm["median_s"] / stage_eq["median_s"]
-        ratio_text = (f"{ratio:.2f}x wall, {stage_rm['cpu_s'] / stage_eq['cpu_s']:.2f}x CPU "
-                      f"(ray march {stage_rm['setting']})")
-    else:
-        ratio, ratio_text = 0.0, "no ratio: a method reached 2 % at none of its settings"
-    results.append(dict(issue="13 light shafts", target=">= 17x the ray march at 2 % on the stage",
-                        measured=ratio_text, status=verdict(ratio >= 17)))
+    if "stage" in scenes:
+        results.append(stage_ratio_row(summary[("stage", "equiangular")], summary[("stage", "raymarch")]))
     if grad:
         results.append(dict(issue="13 light shafts", target="gradient <= 4x forward",
                             measured=f"{grad['ratio_wall']:.2f}x wall, {grad['ratio_cpu']:.2f}x CPU (spot scene)",
