@@ -87,6 +87,8 @@ summary = {"converged": float(np.mean(maps["converged"])), "normal_err_median_de
            "sigma_err_strong_specular": float(np.median(sig_rel[~weak])), "worst_texel": [int(worst[0]), int(worst[1])]}
 print(json.dumps(summary))"""),
 ]
+for i, cell in enumerate(cells):  # stable ids: regenerating changes only what the cells say
+    cell["id"] = f"cell-{i:02d}"
 nb = nbf.v4.new_notebook(cells=cells, metadata={"kernelspec": {"name": "python3", "display_name": "Python 3",
                                                                "language": "python"}})
 nbf.write(nb, Path(__file__).with_name("fitting.ipynb"))
