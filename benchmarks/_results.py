@@ -42,9 +42,10 @@ def write_results(name: str, rows: list[dict], *, quick: bool = False) -> Path |
     if not redirect and (quick or os.environ.get("BENCH_NO_RESULTS")):
         return None
     directory = Path(redirect) if redirect else RESULTS_DIR
+    script = f"benchmarks/{Path(sys.argv[0]).name}"  # the script that ran (noh_frame.py --moving writes noh_frame_moving)
     record = {
-        "script": f"benchmarks/{name}.py",
-        "command": "python " + " ".join([f"benchmarks/{Path(sys.argv[0]).name}", *sys.argv[1:]]),
+        "script": script,
+        "command": "python " + " ".join([script, *sys.argv[1:]]),
         "date_utc": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M"),
         "load_average_1_5_15": [round(x, 2) for x in os.getloadavg()],
         "cpu_count": os.cpu_count(),
