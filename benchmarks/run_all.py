@@ -38,10 +38,11 @@ BEGIN, END = "<!-- summary:begin -->", "<!-- summary:end -->"
 HEADER = ["issue", "target", "measured", "status", "notes"]
 
 
-# The longest --quick runs (CPU seconds on 2026-11-24, load 5: shafts_interactive 64, noh_frame 36,
-# shafts_speed 26, em_pyramid 24, fit_speed 21; the others 3-14 s) start first, so that with two at once
-# the run does not end on one long script while the other core idles; the rest follow in name order.
-LONGEST_FIRST = ("shafts_interactive", "noh_frame", "shafts_speed", "em_pyramid", "fit_speed")
+# The longest --quick runs (CPU seconds, empty compile cache, two at once, 2026-11-24 02:40: em_pyramid 24,
+# fit_speed 22, noh_frame 22, shafts_interactive 21, capture_scale 19; the others 3-15 s) start first, so that
+# with two at once the run does not end on one long script while the other core idles; the rest follow in
+# name order.
+LONGEST_FIRST = ("em_pyramid", "fit_speed", "noh_frame", "shafts_interactive", "capture_scale")
 
 
 def scripts() -> list[Path]:
