@@ -22,12 +22,12 @@ FIG = Path(__file__).parent / "figures"
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="120x80, 16^2 dunes and texels, 1 repeat, no peer")
+    parser.add_argument("--quick", action="store_true", help="120x80, 8^2 dunes and texels, 1 repeat, no peer")
     parser.add_argument("--no-peer", action="store_true", help="skip the no-culling, no-LOD frame")
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
     if args.quick:
-        w, h, size = 120, 80, dict(dune_size=16, ripple_size=16, texels=16)
+        w, h, size = 120, 80, dict(dune_size=8, ripple_size=8, texels=8)
         args.repeats, args.no_peer = 1, True  # the no-LOD frame is a second compile (desert_lod --quick renders one)
     else:
         w, h, size = 720, 480, dict(dune_size=64, ripple_size=64, texels=64)

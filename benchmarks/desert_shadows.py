@@ -21,11 +21,11 @@ FIG = Path(__file__).parent / "figures"
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="120x80, 16x16 dunes, 16 texels, all shadows, 1 repeat")
+    parser.add_argument("--quick", action="store_true", help="120x80, 8x8 dunes, 8 texels, all shadows, 1 repeat")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     if args.quick:
-        w, h, size = 120, 80, dict(dune_size=16, ripple_size=16, texels=16)
+        w, h, size = 120, 80, dict(dune_size=8, ripple_size=8, texels=8)
         args.repeats = 1
     else:
         w, h, size = 720, 480, dict(dune_size=64, ripple_size=64, texels=64)
