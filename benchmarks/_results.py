@@ -42,7 +42,7 @@ def write_results(name: str, rows: list[dict], *, quick: bool = False) -> Path |
     if not redirect and (quick or os.environ.get("BENCH_NO_RESULTS")):
         return None
     directory = Path(redirect) if redirect else RESULTS_DIR
-    script = f"benchmarks/{Path(sys.argv[0]).name}"  # the script that ran (noh_frame.py --moving writes noh_frame_moving)
+    script = f"benchmarks/{Path(sys.argv[0]).name}"  # the one that ran: noh_frame.py --moving writes noh_frame_moving
     record = {
         "script": script,
         "command": "python " + " ".join([script, *sys.argv[1:]]),

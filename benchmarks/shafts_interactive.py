@@ -258,11 +258,11 @@ def main(argv=None) -> int:
     repeats = 2 if args.quick else args.repeats
     print(f"{os.cpu_count()} CPU cores, JAX {jax.__version__} ({jax.default_backend()}), float32, {w}x{h}, "
           f"load average {os.getloadavg()}", flush=True)
-    scenes = {"spot": spot_scene(w, h), "stage": load_stage_scene(width=w, height=h)}
+    scenes = {"spot": spot_scene(w, h)}
     if args.quick:  # a smoke run: the one-light textured spot (the compile grows with the lights), one setting per
-        scenes = {"spot": scenes["spot"]}  # method (each setting and each piece of the profile is a compile)
-        eq, rm, pl = [(16, 512)], (16,), [(8, 4, True)]
+        eq, rm, pl = [(16, 512)], (16,), [(8, 4, True)]  # method (each setting and each profile piece is a compile)
     else:
+        scenes["stage"] = load_stage_scene(width=w, height=h)
         eq = [(n, 512) for n in (8, 12, 16, 24, 32)] + [(24, None)]
         rm, pl = (8, 16, 24, 32, 48), [(8, 4, True), (16, 4, True), (30, 6, False)]
     rows = []
