@@ -65,9 +65,9 @@ def main() -> None:
     env = noh.default_environment()
     scene = noh.noh_scene(width=width, height=height, frames=n_frames, btfs=btfs, env=env)
     setup_s = time.perf_counter() - t
-    two_lobe = (f"EM levels; brocade levels 1.. two-lobe fraction "
-                f"{np.mean([float(np.mean(np.asarray(lv.weight) > 0)) for lv in btfs['brocade'][1:]]):.2f}"
-                if len(btfs["brocade"]) > 1 else "level 0 only, no EM levels")
+    lobes_note = (f"EM levels; brocade levels 1.. two-lobe fraction "
+                  f"{np.mean([float(np.mean(np.asarray(lv.weight) > 0)) for lv in btfs['brocade'][1:]]):.2f}"
+                  if len(btfs["brocade"]) > 1 else "level 0 only, no EM levels")
 
     t = time.perf_counter()
     prep = jax.block_until_ready(noh.prepare_noh(scene, key=jax.random.key(1)))
@@ -108,7 +108,7 @@ def main() -> None:
     rows = [
         ("resolution", f"{width}x{height}"),
         ("garment / floor pixels", f"{prep.garment.position.shape[0]} / {prep.floor.position.shape[0]}"),
-        ("K_env + K_fire, lobes", f"20 + 20, 2 ({two_lobe})"),
+        ("K_env + K_fire, lobes", f"20 + 20, 2 ({lobes_note})"),
         ("scene setup (cloth sim, sky, flames, BTF levels; incl. compile) s", f"{setup_s:.2f}"),
         ("static part: compile + first run s", f"{static_compile_s:.2f}"),
         ("static part (per sequence), median s", f"{static_med:.3f}"),
