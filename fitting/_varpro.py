@@ -192,8 +192,8 @@ def _sums(a, b, ratio_cl, w):
     return wa, wb, jnp.sum(wa * a), jnp.sum(wa * b), jnp.sum(wb * b), har, hbr
 
 
-def project_rho(a: Float[Array, " L"], b: Float[Array, " L"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"],
-                *, ridge: float = RIDGE) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+def project_rho_columns(a: Float[Array, " L"], b: Float[Array, " L"], ratio_cl: Float[Array, "3 L"],
+                        w: Float[Array, " L"], *, ridge: float = RIDGE) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
     """The best non-negative (rho_d, rho_s) per channel for columns a, b (see `nnls2`, `ridge_of`)."""
     _, _, saa, sab, sbb, har, hbr = _sums(a, b, ratio_cl, w)
     return nnls2(saa, sab, sbb, har, hbr, ridge_of(w, ridge))
@@ -216,7 +216,7 @@ def projected_objective(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"],
     """(objective, cost, rho_d, rho_s) at theta with the projected rho (`gauss_newton` without
     derivatives)."""
     a, b = columns(theta, lights, model)
-    rho_d, rho_s = project_rho(a, b, ratio_cl, w)
+    rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w)
     cost = 0.0
     for c in range(3):
         r = ratio_cl[c] - rho_d[c] * a - rho_s[c] * b

@@ -56,10 +56,10 @@ from ._varpro import (
     gauss_newton,
     geometry_to_theta,
     lights_of,
+    project_rho_columns,
     projected_cost_offset,
     theta_to_geometry,
 )
-from ._varpro import project_rho as _project_rho
 
 __all__ = ["TexelFit", "SOLVERS", "fit_texels", "fit_texel", "initial_theta", "theta_to_geometry",
            "geometry_to_theta", "basis", "project_rho", "texel_cost", "texel_residuals",
@@ -120,7 +120,7 @@ def project_rho(ab: Float[Array, "L 2"], ratio_cl: Float[Array, "3 L"], w: Float
                 ridge: float = RIDGE) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
     """Per channel: argmin_{rho_d, rho_s >= 0} sum_l w_l (R_l - rho_d a_l - rho_s b_l)^2 + lam |rho|^2
     (closed form, `fitting._varpro.nnls2`); the observations are channel-major (`3 L`)."""
-    return _project_rho(ab[:, 0], ab[:, 1], ratio_cl, w, ridge=ridge)
+    return project_rho_columns(ab[:, 0], ab[:, 1], ratio_cl, w, ridge=ridge)
 
 
 def _normalized_weights(weight: Float[Array, " L"]) -> Float[Array, " L"]:
@@ -454,7 +454,7 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
     theta = jnp.where(bad, theta0, theta)
     normal, sx, sy = theta_to_geometry(theta)
     a, b = columns(theta, lights, model)
-    rho_d, rho_s = _project_rho(a, b, ratio_cl, w)
+    rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w)
     diff = [ratio_cl[c] - rho_d[c] * a - rho_s[c] * b for c in range(3)]
     sq_l = diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]
     cost = 0.5 * jnp.sum(w * sq_l)

@@ -42,7 +42,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 __all__ = ["Atmosphere", "sky_radiance", "sky_envmap", "envmap_directions", "direction_to_envmap_uv",
-           "sun_direction", "optical_depth"]
+           "sun_direction_y_up", "optical_depth"]
 
 
 class Atmosphere(eqx.Module):
@@ -61,7 +61,7 @@ class Atmosphere(eqx.Module):
     mie_g: float = 0.76
 
 
-def sun_direction(elevation_deg: ArrayLike, azimuth_deg: ArrayLike = 0.0) -> Float[Array, "3"]:
+def sun_direction_y_up(elevation_deg: ArrayLike, azimuth_deg: ArrayLike = 0.0) -> Float[Array, "3"]:
     """Unit vector toward the sun (y up): elevation above the horizon; azimuth from -z toward +x,
     which is the envmap's u times 360 (azimuth 0: -z, u = 0; 90: +x; 180: +z, the map's centre)."""
     el = jnp.deg2rad(jnp.asarray(elevation_deg, dtype=jnp.result_type(float)))

@@ -175,9 +175,9 @@ def _terrain(texels=16, levels=2):
 
 
 def _shade(maps, level):
-    from jaxrender.lights import Sun, sun_direction
+    from jaxrender.lights import Sun, sun_direction_z_up
 
-    sun = Sun(jnp.asarray(sun_direction(12.0, 200.0)), jnp.asarray([3.0, 2.8, 2.5]))
+    sun = Sun(jnp.asarray(sun_direction_z_up(12.0, 200.0)), jnp.asarray([3.0, 2.8, 2.5]))
     visible = jnp.ones(maps.quads, bool)
     lev = jnp.full(maps.quads, level, jnp.int32)
     count = maps.quads[0] * maps.quads[1]

@@ -15,7 +15,7 @@ from jaxrender.sky import (
     optical_depth,
     sky_envmap,
     sky_radiance,
-    sun_direction,
+    sun_direction_y_up,
 )
 
 _CONVERGED_RTOL = 3e-3  # ours at 128/64 samples vs the 4000/400-sample reference (quadrature error)
@@ -88,7 +88,7 @@ def reference_radiance(d, s, *, n=4000, m=400, altitude=1.0, E=20.0):
 
 
 def _dir(elevation_deg, azimuth_deg):
-    return np.asarray(sun_direction(elevation_deg, azimuth_deg))
+    return np.asarray(sun_direction_y_up(elevation_deg, azimuth_deg))
 
 
 _VIEWS = [(90.0, 0.0), (45.0, 30.0), (20.0, 200.0), (8.0, 10.0)]
@@ -208,7 +208,7 @@ def test_batch_jit_and_gradient():
 
     @jax.jit
     def loss(elevation):
-        return jnp.sum(sky_radiance(dirs, sun_direction(elevation, 10.0)))
+        return jnp.sum(sky_radiance(dirs, sun_direction_y_up(elevation, 10.0)))
 
     g = float(jax.grad(loss)(jnp.array(25.0)))
     eps = 1e-4
@@ -218,7 +218,7 @@ def test_batch_jit_and_gradient():
 
 
 def test_float32():
-    s = sun_direction(30.0, 0.0).astype(jnp.float32)
+    s = sun_direction_y_up(30.0, 0.0).astype(jnp.float32)
     d = jnp.asarray(np.stack([_dir(e, a) for e, a in _VIEWS]), jnp.float32)
     out = sky_radiance(d, s)
     assert out.dtype == jnp.float32

@@ -18,4 +18,4 @@ from ._spot import SpotLight as SpotLight
 from ._spot import stack_spotlights as stack_spotlights
 from ._spot import unstack_spotlights as unstack_spotlights
 from ._sun import Sun as Sun
-from ._sun import sun_direction as sun_direction
+from ._sun import sun_direction_z_up as sun_direction_z_up

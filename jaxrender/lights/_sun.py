@@ -8,14 +8,14 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-__all__ = ["Sun", "sun_direction"]
+__all__ = ["Sun", "sun_direction_z_up"]
 
 # Rayleigh optical depth of the clear atmosphere at the zenith for the sRGB primaries (~ 680, 550, 440 nm)
 _RAYLEIGH_TAU = (0.042, 0.097, 0.236)
 _AEROSOL_TAU = 0.06
 
 
-def sun_direction(elevation_deg: float, azimuth_deg: float) -> tuple[float, float, float]:
+def sun_direction_z_up(elevation_deg: float, azimuth_deg: float) -> tuple[float, float, float]:
     """Unit vector toward the sun, z up; azimuth from +x toward +y."""
     el, az = math.radians(elevation_deg), math.radians(azimuth_deg)
     return (math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el))
@@ -40,5 +40,5 @@ class Sun(eqx.Module):
         along the Kasten-Young air mass (redder when low)."""
         m = _air_mass(elevation_deg)
         colour = [intensity * math.exp(-(tau + _AEROSOL_TAU) * m) for tau in _RAYLEIGH_TAU]
-        return cls(jnp.asarray(sun_direction(elevation_deg, azimuth_deg), dtype=float),
+        return cls(jnp.asarray(sun_direction_z_up(elevation_deg, azimuth_deg), dtype=float),
                    jnp.asarray(colour, dtype=float))

@@ -3,7 +3,7 @@ single-scattering method (the default), the sample-plane method with sub-sample 
 hardware emulation (eqs. 5-9), and a ray-marched reference; `render` runs any of them with
 `samples_per_pixel` (k x k regular sub-pixel grid, box filter).
 
-    scene = jaxrender.scenes.load_shafts_scene("scene.json")
+    scene = jaxrender.app.scenes.load_shafts_scene("scene.json")
     image = jaxrender.shafts.render(scene, samples_per_pixel=4)                 # equiangular, 2 x 2 AA
     image = jaxrender.shafts.render_planes(scene, planes=30, subplanes=6)     # (H, W, 3)
     ref = jaxrender.shafts.render_raymarch(scene, samples=180)
@@ -19,7 +19,6 @@ from ._model import light_reach as light_reach
 from ._model import phase as phase
 from ._model import phase_cos as phase_cos
 from ._planes import render_planes as render_planes
-from ._planes import shadow_maps as shadow_maps
 from ._raymarch import raymarch_scattering as raymarch_scattering
 from ._raymarch import render_raymarch as render_raymarch
 from ._render import DEFAULT_METHOD as DEFAULT_METHOD
@@ -29,3 +28,4 @@ from ._render import supersample as supersample
 from ._scene import Medium as Medium
 from ._scene import RenderSettings as RenderSettings
 from ._scene import ShaftsScene as ShaftsScene
+from ._scene import shadow_maps as shadow_maps

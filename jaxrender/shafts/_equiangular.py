@@ -43,11 +43,10 @@ from ..fusion import materialize
 from ..geometry import cast_rays, hit_point
 from ..lights import SpotLight
 from ..maths import atan_nonneg, outer
-from ..shadows import render_shadow_map
 from ..textures import bilinear
 from ._model import FAR, cone_intervals, light_reach, surface_term
 from ._raymarch import surface_visibility
-from ._scene import ShaftsScene
+from ._scene import ShaftsScene, shadow_maps
 
 __all__ = ["render_equiangular", "equiangular_scattering", "bake_light_map", "active_rays_map"]
 
@@ -203,11 +202,6 @@ def active_rays_map(scatter, dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"],
             else jnp.pad(into.reshape((-1, 3)), ((0, pad), (0, 0))).reshape((n_runs, block, 3)))
     image = base.at[target].add(out.reshape((-1, block, 3)), mode="drop")
     return image.reshape((-1, 3))[:n].reshape(shape + (3,))
-
-
-def shadow_maps(scene: ShaftsScene, resolution: int) -> tuple:
-    """Every light's shadow map (`render_shadow_map`)."""
-    return tuple(render_shadow_map(light, scene.prims, resolution=resolution) for light in scene.lights)
 
 
 def primary_hits(scene: ShaftsScene):

@@ -47,7 +47,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ..geometry import cast_rays, hit_point
 from ..lights import SpotLight
 from ..maths import atan_nonneg, outer, safe_norm, sum_short
-from ..shadows import ShadowMap, render_shadow_map
+from ..shadows import ShadowMap
 from ..textures import bilinear, quantize
 from ._model import (
     FAR,
@@ -60,13 +60,9 @@ from ._model import (
     surface_term,
 )
 from ._raymarch import surface_visibility
-from ._scene import RenderSettings, ShaftsScene
+from ._scene import RenderSettings, ShaftsScene, shadow_maps
 
-__all__ = ["render_planes", "shadow_maps"]
-
-def shadow_maps(scene: ShaftsScene) -> tuple[ShadowMap, ...]:
-    """One shadow map per spot light at `scene.render.shadow_map` resolution."""
-    return tuple(render_shadow_map(light, scene.prims, resolution=scene.render.shadow_map) for light in scene.lights)
+__all__ = ["render_planes"]
 
 
 def _interp_weights(n_pixels: int, cells: int) -> np.ndarray:
@@ -455,7 +451,7 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
         raise ValueError("quantize_bits > 0 emulates the hardware: it needs tables=True and g_per_pixel=False")
     B = int(quantize_bits)
     cam = scene.camera
-    maps = shadow_maps(scene)
+    maps = shadow_maps(scene, scene.render.shadow_map)
     visibility = surface_visibility(scene, maps, surface_shadows)
     dirs = cam.primary_rays()
     dtype = dirs.dtype

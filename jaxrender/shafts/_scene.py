@@ -9,6 +9,7 @@ from jaxtyping import Array, Float
 from ..camera import Camera
 from ..geometry import Quads, Spheres
 from ..lights import SpotLight, unstack_spotlights
+from ..shadows import ShadowMap, render_shadow_map
 
 
 class Medium(eqx.Module):
@@ -81,3 +82,8 @@ class ShaftsScene(eqx.Module):
         new = Camera(cam.eye, cam.target, cam.up, cam.fov_y_deg,
                      width=cam.width if width is None else width, height=cam.height if height is None else height)
         return eqx.tree_at(lambda s: s.camera, self, new)
+
+
+def shadow_maps(scene: ShaftsScene, resolution: int) -> tuple[ShadowMap, ...]:
+    """One shadow map per spot light of `scene` (`render_shadow_map`), `resolution` texels square."""
+    return tuple(render_shadow_map(light, scene.prims, resolution=resolution) for light in scene.lights)

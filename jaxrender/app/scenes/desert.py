@@ -19,7 +19,7 @@ from jaxtyping import Array, Float
 
 from jaxrender.camera import Camera
 from jaxrender.io import tonemap
-from jaxrender.lights import Sun, sun_direction
+from jaxrender.lights import Sun, sun_direction_z_up
 from jaxrender.shadows import heightfield_shadow
 from jaxrender.sky import Atmosphere, optical_depth, sky_radiance
 from jaxrender.terrain import (
@@ -130,7 +130,7 @@ def sky_for_sun(sun_elevation: float, sun_azimuth: float, *, sun_intensity: floa
     """(sun with the atmosphere's transmittance, a sky lat-long map H x W x 3 over the z-up
     world (rows: zenith -> nadir, columns: azimuth 0 -> 360 from +x toward +y), and the sky
     irradiance on a horizontal surface)."""
-    direction = jnp.asarray(sun_direction(sun_elevation, sun_azimuth), dtype=jnp.result_type(float))
+    direction = jnp.asarray(sun_direction_z_up(sun_elevation, sun_azimuth), dtype=jnp.result_type(float))
     return _sky_jit(direction, sun_intensity, env_size)
 
 

@@ -10,12 +10,12 @@ import numpy as np
 from jaxrender.io import luminance
 from jaxrender.lights import EnvMap
 from jaxrender.maths import default_float
-from jaxrender.sky import sky_envmap, sun_direction
+from jaxrender.sky import sky_envmap, sun_direction_y_up
 
 
 @functools.lru_cache(maxsize=4)
 def _sky(width: int, height: int, elevation: float, azimuth: float) -> np.ndarray:
-    return np.asarray(sky_envmap(sun_direction(elevation, azimuth), width=width, height=height, sun_disk=True))
+    return np.asarray(sky_envmap(sun_direction_y_up(elevation, azimuth), width=width, height=height, sun_disk=True))
 
 
 def default_environment(*, width: int = 128, height: int = 64, sun_elevation_deg: float = -2.0,
