@@ -15,3 +15,11 @@ class InputError(Exception):
         self.path = None if path is None else os.fspath(path)
         self.problem = problem
         super().__init__(problem if path is None else f"{self.path}: {problem}")
+
+
+class InputErrors(InputError):
+    """Several problems of one input, one `PATH: problem` line each (`str` joins them with newlines)."""
+
+    def __init__(self, problems: list[str]):
+        self.problems = list(problems)
+        super().__init__(None, "\n".join(self.problems))

@@ -2,6 +2,7 @@
 colour transfer functions and tone mapping, atomic writes, and the user-input error type."""
 
 from ..errors import InputError as InputError
+from ..errors import InputErrors as InputErrors
 from ._atomic import atomic_path as atomic_path
 from ._btf import BTF_FORMAT as BTF_FORMAT
 from ._btf import BTF_VERSION as BTF_VERSION
@@ -17,6 +18,10 @@ from ._color import linear_to_srgb as linear_to_srgb
 from ._color import luminance as luminance
 from ._color import srgb_to_linear as srgb_to_linear
 from ._color import tonemap as tonemap
+from ._fields import MAX_PROBLEMS as MAX_PROBLEMS
+from ._fields import Fields as Fields
+from ._fields import Problems as Problems
+from ._fields import is_number as is_number
 from ._images import read_exr as read_exr
 from ._images import read_image as read_image
 from ._images import write_exr as write_exr
