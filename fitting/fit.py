@@ -17,31 +17,33 @@ bit-identical to an uninterrupted one. `.partial/` is removed once the BTF is co
 
 from __future__ import annotations
 
+import concurrent.futures
+import dataclasses
 import functools
-import hashlib
-import json
 import os
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import jax
 import numpy as np
 
-from jaxrender.io import atomic_path, write_btf, write_btf_previews
+from jaxrender.io import write_btf, write_btf_previews
 
-from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, SOLVERS, default_tolerances, fit_texels
+from .checkpoint import Checkpoint, fingerprint
+from .hdr import ObservationCounts, Observations
+from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, SOLVERS, TexelFit, default_tolerances, fit_texels
 from .pyramid import build_pyramid
 
-__all__ = ["fit_observations", "fit_maps", "fit_chunks", "fit_chunk", "chunk_plan", "level0_channels", "write_fit",
-           "DEFAULT_CHUNK", "TILE", "PARTIAL"]
+__all__ = ["fit_observations", "fit_maps", "ChunkPlan", "plan_chunks", "fit_chunk", "run_chunks", "fit_in_process",
+           "assemble_maps", "level0_channels", "write_fit", "check_settings", "progress_bar", "DEFAULT_CHUNK", "TILE",
+           "PARTIAL"]
 
 DEFAULT_CHUNK = 4096
 # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
 TILE = 32
 PARTIAL = ".partial"
-_FIELDS = ("rho_d", "rho_s", "normal", "sigma_x", "sigma_y", "residual", "cost", "converged", "num_steps", "n_valid")
 
 
 def _layout(chunk: int, n_devices: int) -> tuple[int, int]:
@@ -75,8 +77,8 @@ def _tile_fit(tile: int, model: str, solver: str, max_steps: int):
     return jax.jit(fn)
 
 
-def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_steps) -> dict[str, np.ndarray]:
-    """Fit `n_devices * per_device` texels (already padded) over the local devices; flat numpy fields."""
+def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_steps) -> TexelFit:
+    """Fit `n_devices * per_device` texels (already padded) over the local devices; flat numpy leaves."""
     devices = jax.local_devices()
     fn = _tile_fit(tile, model, solver, max_steps)
     per_device = ratio.shape[0] // len(devices)
@@ -88,75 +90,46 @@ def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_
         w = jax.device_put(weight[share].reshape((-1, tile) + weight.shape[1:]), place)
         dirs, view = jax.device_put(np.asarray(light_dirs), place), jax.device_put(np.asarray(view_dir), place)
         outs.append(fn(r, w, dirs, view))
-    return {name: np.concatenate([np.asarray(getattr(o, name)) for o in outs]) for name in _FIELDS}
+    return jax.tree.map(lambda *shares: np.concatenate([np.asarray(x) for x in shares]), *outs)
 
 
-def _fingerprint(obs, settings: dict) -> str:
-    h = hashlib.sha256(json.dumps(settings, sort_keys=True).encode())
-    for x in (obs.light_dirs, obs.view_dir):
-        h.update(np.ascontiguousarray(np.asarray(x)).tobytes())
-    h.update(np.ascontiguousarray(np.asarray(obs.ratio)[..., :1, :]).tobytes())  # first light of every texel
-    h.update(str(tuple(obs.ratio.shape)).encode())
-    return h.hexdigest()
+@dataclasses.dataclass(frozen=True)
+class ChunkPlan:
+    """The work units of a fit of `size` texels (flat row-major order): chunk i is texels
+    `starts[i] .. starts[i] + counts[i] - 1`, fitted padded to `padded` texels in tiles of `tile`.
+
+    Every chunk has the same padded shape (one compilation), the last one padded with its last
+    texel: the same units whether the observations are in memory or in a store, fitted here or on
+    a Dask worker, so a texel always meets the same compiled program."""
+
+    size: tuple[int, int]
+    starts: tuple[int, ...]
+    counts: tuple[int, ...]
+    tile: int
+    padded: int
 
 
-def _prepare_partial(partial: Path, fingerprint: str) -> None:
-    config = partial / "config.json"
-    if partial.is_dir():
-        try:
-            same = json.loads(config.read_text()).get("fingerprint") == fingerprint
-        except (OSError, ValueError):
-            same = False
-        if not same:  # another capture or other settings: start again
-            shutil.rmtree(partial)
-    partial.mkdir(parents=True, exist_ok=True)
-    if not config.is_file():
-        with atomic_path(config) as tmp:
-            tmp.write_text(json.dumps({"fingerprint": fingerprint}))
+def plan_chunks(size: tuple[int, int], chunk: int) -> ChunkPlan:
+    """The chunks of `size` texels for this process's local devices."""
+    total = size[0] * size[1]
+    tile, per_device = _layout(min(chunk, total), jax.local_device_count())
+    starts = tuple(range(0, total, chunk))
+    return ChunkPlan(tuple(size), starts, tuple(min(chunk, total - s) for s in starts), tile,
+                     per_device * jax.local_device_count())
 
 
-def _save_chunk(path: Path, result: dict[str, np.ndarray]) -> None:
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, **result)
-
-
-def _load_chunk(path: Path, count: int) -> dict[str, np.ndarray] | None:
-    try:
-        with np.load(path) as data:
-            out = {name: data[name] for name in _FIELDS}
-    except (OSError, ValueError, KeyError, EOFError):
-        return None  # unreadable: fit it again
-    if any(v.shape[0] != count for v in out.values()):
-        return None
-    return out
-
-
-def chunk_plan(total: int, chunk: int) -> tuple[list[int], int, int]:
-    """(first texel of every chunk, tile, padded chunk size): the work units of a fit.
-
-    Every chunk is fitted with the same padded shape (one compilation), the last one padded with
-    its last texel: the same units whether the observations are in memory or in a store, fitted
-    here or on a Dask worker, so a texel always meets the same compiled program."""
-    n_dev = jax.local_device_count()
-    tile, per_device = _layout(min(chunk, total), n_dev)
-    return list(range(0, total, chunk)), tile, per_device * n_dev
-
-
-def fit_chunk(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], start: int, count: int, padded: int,
-              light_dirs, view_dir, *, tile: int, model: str, solver: str, max_steps: int) -> dict[str, np.ndarray]:
-    """Fit texels `start .. start + count - 1`: `read(start, count)` gives their (ratio `count L 3`,
-    weight `count L`); padded to `padded` texels with the last one; flat numpy `TexelFit` fields."""
+def fit_chunk(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], plan: ChunkPlan, index: int, light_dirs,
+              view_dir, *, model: str, solver: str, max_steps: int) -> TexelFit:
+    """Fit chunk `index` of `plan`: `read(start, count)` gives its (ratio `count L 3`, weight
+    `count L`); a `TexelFit` of flat numpy leaves (`count` texels)."""
+    start, count = plan.starts[index], plan.counts[index]
     ratio, weight = read(start, count)
-    if count != padded:
-        idx = np.minimum(np.arange(padded), count - 1)  # pad with the last texel
+    if count != plan.padded:
+        idx = np.minimum(np.arange(plan.padded), count - 1)  # pad with the last texel
         ratio, weight = ratio[idx], weight[idx]
-    out = _chunk_fit(ratio, weight, light_dirs, view_dir, tile=tile, model=model, solver=solver, max_steps=max_steps)
-    return {k: v[:count] for k, v in out.items()}
-
-
-def chunk_path(partial: Path, index: int) -> Path:
-    return partial / f"chunk_{index:06d}.npz"
+    out = _chunk_fit(ratio, weight, light_dirs, view_dir, tile=plan.tile, model=model, solver=solver,
+                     max_steps=max_steps)
+    return jax.tree.map(lambda v: v[:count], out)
 
 
 def check_settings(solver: str, chunk: int, max_steps: int) -> None:
@@ -174,110 +147,111 @@ def progress_bar(total: int, progress: bool | None):
                 smoothing=0.1)
 
 
-def assemble_maps(results: list[dict[str, np.ndarray]], size: tuple[int, int]) -> dict[str, np.ndarray]:
-    """Per-chunk flat results (in texel order) -> `H W ...` maps."""
-    maps = {name: np.concatenate([r[name] for r in results]) for name in _FIELDS}
-    return {name: v.reshape(tuple(size) + v.shape[1:]) for name, v in maps.items()}
+def assemble_maps(results: list[TexelFit], size: tuple[int, int]) -> TexelFit:
+    """Per-chunk flat fits (in texel order) -> one `TexelFit` of `H W ...` maps."""
+    return jax.tree.map(lambda *chunks: np.concatenate(chunks).reshape(tuple(size) + chunks[0].shape[1:]), *results)
 
 
-def fit_chunks(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], size: tuple[int, int], light_dirs,
-               view_dir, *, solver: str, chunk: int, max_steps: int, model: str, partial: Path | None,
-               progress: bool | None, on_chunk: Callable[[int], object] | None = None,
-               prefetch: bool = False) -> dict[str, np.ndarray]:
-    """Fit every chunk of `read`'s texels in this process, checkpointing each into `partial`
-    (chunks already there are loaded). `prefetch`: read the next chunk (a thread) while this one
-    is fitted. `on_chunk(i)` is called after chunk i is fitted and saved."""
-    import concurrent.futures
-
-    total = size[0] * size[1]
-    starts, tile, padded = chunk_plan(total, chunk)
-    counts = [min(chunk, total - start) for start in starts]
-    results: list[dict[str, np.ndarray] | None] = [
-        _load_chunk(chunk_path(partial, i), counts[i]) if partial is not None and chunk_path(partial, i).is_file()
-        else None for i in range(len(starts))]
+def run_chunks(plan: ChunkPlan, checkpoint: Checkpoint | None,
+               fit_todo: Callable[[list[int]], Iterable[tuple[int, TexelFit]]], *, progress: bool | None,
+               on_chunk: Callable[[int], object] | None = None) -> TexelFit:
+    """The resume loop of every path: chunks already in `checkpoint` are loaded, the others fitted by
+    `fit_todo(indices)`, which yields (index, fit) as each is done (and saved); `H W` maps."""
+    results = [checkpoint.load(i, count) if checkpoint is not None else None for i, count in enumerate(plan.counts)]
     todo = [i for i, r in enumerate(results) if r is None]
-    bar = progress_bar(total, progress)
-    bar.update(total - sum(counts[i] for i in todo))
-
-    def load(i):
-        return read(starts[i], counts[i])
-
-    reader = concurrent.futures.ThreadPoolExecutor(max_workers=1) if prefetch and todo else None
+    bar = progress_bar(sum(plan.counts), progress)
+    bar.update(sum(plan.counts) - sum(plan.counts[i] for i in todo))
     try:
-        future = reader.submit(load, todo[0]) if reader is not None else None
-        for k, i in enumerate(todo):
-            data = future.result() if reader is not None else load(i)
-            if reader is not None and k + 1 < len(todo):
-                future = reader.submit(load, todo[k + 1])
-            result = fit_chunk(lambda s, c, data=data: data, starts[i], counts[i], padded, light_dirs, view_dir,
-                               tile=tile, model=model, solver=solver, max_steps=max_steps)
-            if partial is not None:
-                _save_chunk(chunk_path(partial, i), result)
-            results[i] = result
-            bar.update(counts[i])
+        for i, fit in fit_todo(todo):
+            results[i] = fit
+            bar.update(plan.counts[i])
             if on_chunk is not None:
                 on_chunk(i)
     finally:
         bar.close()
-        if reader is not None:
-            reader.shutdown(wait=True, cancel_futures=True)
-    return assemble_maps(results, size)
+    return assemble_maps(results, plan.size)
 
 
-def fit_maps(obs, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK, max_steps: int = DEFAULT_MAX_STEPS,
-             model: str = "reciprocal", partial_dir: str | os.PathLike | None = None,
-             progress: bool | None = None, on_chunk: Callable[[int], object] | None = None) -> dict[str, np.ndarray]:
-    """Fit every texel of `Observations`; returns `H W ...` numpy maps of the `TexelFit` fields.
+def fit_in_process(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], plan: ChunkPlan,
+                   checkpoint: Checkpoint | None, light_dirs, view_dir, *, solver: str, max_steps: int, model: str,
+                   prefetch: bool = False):
+    """`fit_todo` of `run_chunks` for this process: each chunk read (the next one read by a thread
+    meanwhile when `prefetch`), fitted and saved in turn."""
+
+    def fit_todo(todo: list[int]):
+        def load(i):
+            return read(plan.starts[i], plan.counts[i])
+
+        reader = concurrent.futures.ThreadPoolExecutor(max_workers=1) if prefetch and todo else None
+        try:
+            future = reader.submit(load, todo[0]) if reader is not None else None
+            for k, i in enumerate(todo):
+                data = future.result() if reader is not None else load(i)
+                if reader is not None and k + 1 < len(todo):
+                    future = reader.submit(load, todo[k + 1])
+                fit = fit_chunk(lambda s, c, data=data: data, plan, i, light_dirs, view_dir, model=model,
+                                solver=solver, max_steps=max_steps)
+                if checkpoint is not None:
+                    checkpoint.save(i, fit)
+                yield i, fit
+        finally:
+            if reader is not None:
+                reader.shutdown(wait=True, cancel_futures=True)
+
+    return fit_todo
+
+
+def fit_maps(obs: Observations, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK,
+             max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal",
+             partial_dir: str | os.PathLike | None = None, progress: bool | None = None,
+             on_chunk: Callable[[int], object] | None = None) -> TexelFit:
+    """Fit every texel of `Observations`; a `TexelFit` of `H W ...` numpy maps.
 
     `partial_dir`: checkpoint finished chunks there and reuse the ones already present.
     `progress`: None = a tqdm bar on a terminal only, False = never, True = always.
     """
     check_settings(solver, chunk, max_steps)
     h, w = obs.size
-    total = h * w
-    ratio = np.asarray(obs.ratio).reshape(total, obs.n_lights, 3)
-    weight = np.asarray(obs.weight).reshape(total, obs.n_lights)
-    settings = {"solver": solver, "chunk": chunk, "max_steps": max_steps, "model": model,
-                "dtype": str(ratio.dtype)}
-    partial = None
-    if partial_dir is not None:
-        partial = Path(partial_dir)
-        _prepare_partial(partial, _fingerprint(obs, settings))
-    return fit_chunks(lambda s, c: (ratio[s:s + c], weight[s:s + c]), (h, w), obs.light_dirs, obs.view_dir,
-                      solver=solver, chunk=chunk, max_steps=max_steps, model=model, partial=partial,
-                      progress=progress, on_chunk=on_chunk)
+    ratio = np.asarray(obs.ratio).reshape(h * w, obs.n_lights, 3)
+    weight = np.asarray(obs.weight).reshape(h * w, obs.n_lights)
+    settings = {"solver": solver, "chunk": chunk, "max_steps": max_steps, "model": model, "dtype": str(ratio.dtype)}
+    checkpoint = None
+    if partial_dir is not None:  # the inputs' identity: directions, and the first light of every texel
+        checkpoint = Checkpoint(partial_dir).prepare(fingerprint(
+            settings, np.asarray(obs.light_dirs), np.asarray(obs.view_dir), np.asarray(ratio[:, :1]), str(ratio.shape)))
+    plan = plan_chunks((h, w), chunk)
+    fit_todo = fit_in_process(lambda s, c: (ratio[s:s + c], weight[s:s + c]), plan, checkpoint, obs.light_dirs,
+                              obs.view_dir, solver=solver, max_steps=max_steps, model=model)
+    return run_chunks(plan, checkpoint, fit_todo, progress=progress, on_chunk=on_chunk)
 
 
-def level0_channels(maps: dict[str, np.ndarray], obs) -> dict[str, np.ndarray]:
-    """BTF level-0 channels (design.md names) of `fit_maps` output and the observation counts
-    (`Observations` or a dict `n_valid`, `n_saturated`, `n_dark` of `H W` maps)."""
+def level0_channels(maps: TexelFit, counts: ObservationCounts) -> dict[str, np.ndarray]:
+    """BTF level-0 channels (design.md names) of `fit_maps` output and the observation counts."""
     c: dict[str, np.ndarray] = {}
     for i, ch in enumerate("RGB"):
-        c[f"rho_d.{ch}"] = maps["rho_d"][..., i]
-        c[f"rho_s.{ch}"] = maps["rho_s"][..., i]
+        c[f"rho_d.{ch}"] = maps.rho_d[..., i]
+        c[f"rho_s.{ch}"] = maps.rho_s[..., i]
     for i, ax in enumerate("XYZ"):
-        c[f"normal.{ax}"] = maps["normal"][..., i]
-    c["sigma_x"], c["sigma_y"] = maps["sigma_x"], maps["sigma_y"]
-    c["residual"] = maps["residual"]
-    c["converged"] = maps["converged"].astype(np.float32)
-    for name in ("n_valid", "n_saturated", "n_dark"):  # `Observations` or a dict of counts (a store's)
-        c[name] = np.asarray(obs[name] if isinstance(obs, dict) else getattr(obs, name))
+        c[f"normal.{ax}"] = maps.normal[..., i]
+    c["sigma_x"], c["sigma_y"] = maps.sigma_x, maps.sigma_y
+    c["residual"] = maps.residual
+    c["converged"] = np.asarray(maps.converged).astype(np.float32)
+    c["n_valid"], c["n_saturated"], c["n_dark"] = counts.n_valid, counts.n_saturated, counts.n_dark
     return {k: np.asarray(v, np.float32) for k, v in c.items()}
 
 
-def write_fit(btf_dir: Path, maps: dict[str, np.ndarray], counts, *, solver: str, chunk: int, max_steps: int,
+def write_fit(btf_dir: Path, maps: TexelFit, counts: ObservationCounts, *, solver: str, chunk: int, max_steps: int,
               model: str, pyramid: bool, seconds: float, cpu_seconds: float | None = None,
               meta: dict | None = None) -> Path:
-    """Level 0 (`btf.json` last), its previews and the EM pyramid of fitted maps; removes `.partial/`.
-    `counts`: `Observations` or a dict of `n_valid`, `n_saturated`, `n_dark` maps."""
+    """Level 0 (`btf.json` last), its previews and the EM pyramid of fitted maps; removes `.partial/`."""
     level0 = level0_channels(maps, counts)
     rtol, atol = default_tolerances(np.float32)  # the fit always sees float32 observations
     info = {"fit": {"solver": solver, "method": "levenberg-marquardt, variable projection of rho_d, rho_s",
                     "chunk": chunk, "max_steps": max_steps, "rtol": rtol, "atol": atol,
                     "devices": jax.local_device_count(),
-                    "converged_fraction": float(np.mean(maps["converged"])),
-                    "median_residual": float(np.median(maps["residual"])),
-                    "median_steps": float(np.median(maps["num_steps"])), "seconds": round(seconds, 3)}}
+                    "converged_fraction": float(np.mean(maps.converged)),
+                    "median_residual": float(np.median(maps.residual)),
+                    "median_steps": float(np.median(maps.num_steps)), "seconds": round(seconds, 3)}}
     if cpu_seconds is not None:  # this process's CPU time (robust to a shared machine's load)
         info["fit"]["cpu_seconds"] = round(cpu_seconds, 3)
     info.update(meta or {})
@@ -290,9 +264,9 @@ def write_fit(btf_dir: Path, maps: dict[str, np.ndarray], counts, *, solver: str
     return btf_dir
 
 
-def fit_observations(obs, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK,
-                     max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal", pyramid: bool = True,
-                     progress: bool | None = None, meta: dict | None = None) -> Path:
+def fit_observations(obs: Observations, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_SOLVER,
+                     chunk: int = DEFAULT_CHUNK, max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal",
+                     pyramid: bool = True, progress: bool | None = None, meta: dict | None = None) -> Path:
     """Fit in-memory `Observations` into the BTF directory `btf_dir` (checkpointed and resumable)."""
     btf_dir = Path(btf_dir)
     if np.asarray(obs.ratio).dtype != np.float32:
@@ -300,6 +274,6 @@ def fit_observations(obs, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_S
     t0, c0 = time.perf_counter(), time.process_time()
     maps = fit_maps(obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model, partial_dir=btf_dir / PARTIAL,
                     progress=progress)
-    return write_fit(btf_dir, maps, obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
+    return write_fit(btf_dir, maps, obs.counts, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
                      pyramid=pyramid, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0,
                      meta=dict(meta or {}))

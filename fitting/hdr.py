@@ -27,13 +27,22 @@ from tqdm.auto import tqdm
 
 from jaxrender.io import srgb_to_linear
 
-__all__ = ["SATURATION_CODE", "DARK_CODE", "HAT_RAMP", "RESPONSES", "Observations", "linearize",
+__all__ = ["SATURATION_CODE", "DARK_CODE", "HAT_RAMP", "RESPONSES", "Observations", "ObservationCounts", "linearize",
            "exposure_weights", "merge_exposures", "observe", "merge_capture"]
 
 SATURATION_CODE = 0.98  # design.md: code values >= 0.98 of full scale get zero weight
 DARK_CODE = 2.0 / 255.0  # design.md: code values <= 2/255 get zero weight
 HAT_RAMP = 0.05  # the hat weight reaches 1 this far (in code units) inside the valid range
 RESPONSES = ("linear", "srgb")
+
+
+class ObservationCounts(eqx.Module):
+    """Lights per texel whose observation was valid, saturated or dark (`H W` maps; a light with
+    both a saturated and a dark channel counts in both)."""
+
+    n_valid: Int[Array, "H W"]
+    n_saturated: Int[Array, "H W"]
+    n_dark: Int[Array, "H W"]
 
 
 class Observations(eqx.Module):
@@ -62,6 +71,10 @@ class Observations(eqx.Module):
     @property
     def n_lights(self) -> int:
         return int(self.light_dirs.shape[0])
+
+    @property
+    def counts(self) -> ObservationCounts:
+        return ObservationCounts(self.n_valid, self.n_saturated, self.n_dark)
 
 
 def linearize(codes: Float[ArrayLike, "..."], response: str) -> Float[Array, "..."]:

@@ -17,7 +17,6 @@ block, so an interrupted block is simply written again). `store.json` is written
 from __future__ import annotations
 
 import concurrent.futures
-import hashlib
 import json
 import os
 import shutil
@@ -29,6 +28,7 @@ import numpy as np
 from jaxrender.io import InputError, atomic_path
 
 from .capture import MAX_IMAGE_PROBLEMS, Capture, CaptureError, load_capture
+from .checkpoint import fingerprint
 from .hdr import observe
 from .store import (
     DARK,
@@ -62,14 +62,11 @@ def light_block_for(size: tuple[int, int], n_exposures: int, memory_gb: float = 
     return max(1, int(memory_gb * 2**30 // per_light))
 
 
-def _fingerprint(capture: Capture, settings: dict) -> str:
+def _capture_fingerprint(capture: Capture, settings: dict) -> str:
     """Manifest text, every image's size and modification time, and the settings of the store."""
-    h = hashlib.sha256(json.dumps(settings, sort_keys=True).encode())
-    h.update((capture.root / "capture.json").read_bytes())
-    for path in (*capture.white_images, *(p for images in capture.light_images for p in images)):
-        stat = path.stat()
-        h.update(f"{path}:{stat.st_size}:{stat.st_mtime_ns}".encode())
-    return h.hexdigest()
+    stats = (f"{path}:{path.stat().st_size}:{path.stat().st_mtime_ns}"
+             for path in (*capture.white_images, *(p for images in capture.light_images for p in images)))
+    return fingerprint(settings, (capture.root / "capture.json").read_bytes(), *stats)
 
 
 def _read_config(store_dir: Path) -> dict | None:
@@ -171,7 +168,7 @@ def ingest_capture(capture_dir: str | os.PathLike, store_dir: str | os.PathLike,
     block = min(light_block or light_block_for(capture.size, n_exp, memory_gb), capture.n_lights)
     tile = min(tile, capture.size[0] * capture.size[1])
     settings = {"format": STORE_FORMAT, "version": STORE_VERSION, "dtype": dtype, "tile": tile, "light_block": block}
-    fingerprint = _fingerprint(capture, settings)
+    fingerprint_ = _capture_fingerprint(capture, settings)
     pool = concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers))
     prefetch = concurrent.futures.ThreadPoolExecutor(max_workers=1)  # apart from `pool`: no deadlock
     try:
@@ -179,11 +176,11 @@ def ingest_capture(capture_dir: str | os.PathLike, store_dir: str | os.PathLike,
         problems = [line for _, lines in white_results for line in lines]
         if problems:  # still nothing written
             raise CaptureError(problems)
-        state = _start(store_dir, fingerprint)
+        state = _start(store_dir, fingerprint_)
         if state == "done":
             return store_dir
         if state == "new":
-            _create(store_dir, capture, dtype=dtype, tile=tile, block=block, fingerprint=fingerprint)
+            _create(store_dir, capture, dtype=dtype, tile=tile, block=block, fingerprint=fingerprint_)
         white = np.stack([c for c, _ in white_results])
         exposures = np.asarray(capture.exposures_s, np.float32)
         reflectance = np.asarray(capture.white_reflectance, np.float32)
@@ -196,7 +193,7 @@ def ingest_capture(capture_dir: str | os.PathLike, store_dir: str | os.PathLike,
                 "light_angles": np.asarray(capture.light_angles).tolist(), "view_angles": list(capture.view_angles),
                 "exposures_s": list(capture.exposures_s), "response": capture.response,
                 "white_reflectance": capture.white_reflectance.tolist(), "capture": str(capture.root),
-                "fingerprint": fingerprint, "ingest_seconds": round(time.perf_counter() - t0, 3)}
+                "fingerprint": fingerprint_, "ingest_seconds": round(time.perf_counter() - t0, 3)}
         _finish(store_dir, capture, tile=tile, info=info)
         return store_dir
     except CaptureError:

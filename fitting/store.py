@@ -29,7 +29,7 @@ import numpy as np
 
 from jaxrender.io import InputError, atomic_path
 
-from .hdr import Observations
+from .hdr import ObservationCounts, Observations
 
 __all__ = ["STORE_FORMAT", "STORE_VERSION", "STORE_DTYPES", "DEFAULT_STORE_DTYPE", "ObservationStore",
            "open_store", "is_store", "VALID", "SATURATED", "DARK"]
@@ -96,10 +96,10 @@ class ObservationStore:
     def flags(self, start: int, count: int) -> np.ndarray:
         return np.asarray(self._flags[start:start + count])
 
-    def counts(self) -> dict[str, np.ndarray]:
+    def counts(self) -> ObservationCounts:
         """`H W` int32 maps n_valid, n_saturated, n_dark."""
         counts = np.asarray(self._counts[:]).reshape(self.size + (3,))
-        return {name: counts[..., i] for i, name in enumerate(("n_valid", "n_saturated", "n_dark"))}
+        return ObservationCounts(counts[..., 0], counts[..., 1], counts[..., 2])
 
     def observations(self):
         """The whole store as in-memory `fitting.hdr.Observations` (small stores and tests only)."""
@@ -112,7 +112,8 @@ class ObservationStore:
                             weight=jnp.asarray(weight.reshape(h, w, self.n_lights)),
                             light_dirs=jnp.asarray(self.light_dirs.astype(np.float32)),
                             view_dir=jnp.asarray(self.view_dir.astype(np.float32)),
-                            **{k: jnp.asarray(v) for k, v in counts.items()})
+                            n_valid=jnp.asarray(counts.n_valid), n_saturated=jnp.asarray(counts.n_saturated),
+                            n_dark=jnp.asarray(counts.n_dark))
 
 
 def open_store(store_dir: str | os.PathLike) -> ObservationStore:
