@@ -12,7 +12,8 @@ Finished chunks are checkpointed in `BTF_DIR/.partial/` (one `.npz` per chunk, e
 atomically, plus `config.json` naming the capture and settings). Rerunning on the same output
 resumes: chunks already there are loaded, the others fitted. Every chunk is fitted with the same
 padded shape whatever happened before, so a run killed with SIGKILL and resumed gives maps
-bit-identical to an uninterrupted one. `.partial/` is removed once the BTF is complete.
+bit-identical to an uninterrupted one. `.partial/` is removed once the BTF is complete, with the
+temporaries a killed run left behind.
 """
 
 from __future__ import annotations
@@ -29,16 +30,16 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxrender.io import write_btf, write_btf_previews
+from jaxrender.io import complete_level, output_lock, remove_temporaries, write_btf, write_btf_previews
 
 from .checkpoint import Checkpoint, fingerprint
 from .hdr import ObservationCounts, Observations
 from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, SOLVERS, TexelFit, default_tolerances, fit_texels
-from .pyramid import build_pyramid
+from .pyramid import pyramid_channels
 
 __all__ = ["fit_observations", "fit_maps", "ChunkPlan", "plan_chunks", "fit_chunk", "run_chunks", "fit_in_process",
-           "assemble_maps", "level0_channels", "write_fit", "check_settings", "progress_bar", "DEFAULT_CHUNK", "TILE",
-           "PARTIAL"]
+           "assemble_maps", "level0_channels", "write_fit", "begin_output", "check_settings", "progress_bar",
+           "DEFAULT_CHUNK", "TILE", "PARTIAL"]
 
 DEFAULT_CHUNK = 4096
 # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
@@ -240,10 +241,19 @@ def level0_channels(maps: TexelFit, counts: ObservationCounts) -> dict[str, np.n
     return {k: np.asarray(v, np.float32) for k, v in c.items()}
 
 
+def begin_output(btf_dir: Path) -> None:
+    """A fit starts writing `btf_dir` (its lock held): an older `btf.json` goes, so the directory is
+    incomplete until this fit's last step, and so do the temporaries a killed run left."""
+    (btf_dir / "btf.json").unlink(missing_ok=True)
+    for directory in (btf_dir, btf_dir / "previews", btf_dir / PARTIAL):
+        remove_temporaries(directory)
+
+
 def write_fit(btf_dir: Path, maps: TexelFit, counts: ObservationCounts, *, solver: str, chunk: int, max_steps: int,
               model: str, pyramid: bool, seconds: float, cpu_seconds: float | None = None,
               meta: dict | None = None) -> Path:
-    """Level 0 (`btf.json` last), its previews and the EM pyramid of fitted maps; removes `.partial/`."""
+    """Previews of level 0, then level 0 and the EM pyramid of fitted maps with `btf.json` last (it
+    appears only once every level is written); removes `.partial/` and any temporaries."""
     level0 = level0_channels(maps, counts)
     rtol, atol = default_tolerances(np.float32)  # the fit always sees float32 observations
     info = {"fit": {"solver": solver, "method": "levenberg-marquardt, variable projection of rho_d, rho_s",
@@ -255,25 +265,35 @@ def write_fit(btf_dir: Path, maps: TexelFit, counts: ObservationCounts, *, solve
     if cpu_seconds is not None:  # this process's CPU time (robust to a shared machine's load)
         info["fit"]["cpu_seconds"] = round(cpu_seconds, 3)
     info.update(meta or {})
-    write_btf(btf_dir, [level0], model=model, meta=info)
-    write_btf_previews(btf_dir, level0)
-    del level0
-    if pyramid:
-        build_pyramid(btf_dir)
-    shutil.rmtree(btf_dir / PARTIAL, ignore_errors=True)
+    with output_lock(btf_dir):
+        write_btf_previews(btf_dir, level0)
+        level0 = complete_level(level0, level0=True)
+        levels = [level0]
+        if pyramid:
+            coarse, pyramid_meta = pyramid_channels(level0)
+            levels += coarse
+            info.update(pyramid_meta)
+        write_btf(btf_dir, levels, model=model, meta=info)
+        del levels, level0
+        shutil.rmtree(btf_dir / PARTIAL, ignore_errors=True)
+        for directory in (btf_dir, btf_dir / "previews"):
+            remove_temporaries(directory)
     return btf_dir
 
 
 def fit_observations(obs: Observations, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_SOLVER,
                      chunk: int = DEFAULT_CHUNK, max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal",
                      pyramid: bool = True, progress: bool | None = None, meta: dict | None = None) -> Path:
-    """Fit in-memory `Observations` into the BTF directory `btf_dir` (checkpointed and resumable)."""
+    """Fit in-memory `Observations` into the BTF directory `btf_dir` (checkpointed and resumable; its
+    lock held throughout)."""
     btf_dir = Path(btf_dir)
     if np.asarray(obs.ratio).dtype != np.float32:
         raise ValueError("fit_observations fits float32 observations")
-    t0, c0 = time.perf_counter(), time.process_time()
-    maps = fit_maps(obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model, partial_dir=btf_dir / PARTIAL,
-                    progress=progress)
-    return write_fit(btf_dir, maps, obs.counts, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
-                     pyramid=pyramid, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0,
-                     meta=dict(meta or {}))
+    with output_lock(btf_dir):
+        begin_output(btf_dir)
+        t0, c0 = time.perf_counter(), time.process_time()
+        maps = fit_maps(obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
+                        partial_dir=btf_dir / PARTIAL, progress=progress)
+        return write_fit(btf_dir, maps, obs.counts, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
+                         pyramid=pyramid, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0,
+                         meta=dict(meta or {}))

@@ -10,6 +10,9 @@ writes the tile's file itself, so the store and BTF_DIR must be on a path every 
 worker that dies loses only its running tile, which the scheduler gives to another; a rerun after
 the whole cluster died loads the tiles already written. Every tile is fitted with the same padded
 shape and program wherever it runs: the maps equal a single-process run's bit for bit.
+A chunk of the store found damaged before or during the fit is written again from the capture
+(`fitting.ingest.repair_store`) and the fit resumes from its checkpoint; one fit writes a
+BTF_DIR at a time (its `.lock`).
 
 Memory: a process holds one or two tiles of observations (`chunk` x L x 16 bytes) plus the output
 maps (60 bytes per texel while fitting; level 0 as EXR channels, 100 bytes per texel, while the BTF
@@ -27,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxrender.io import InputError
+from jaxrender.io import InputError, output_lock
 
 from .capture import CaptureError
 from .checkpoint import Checkpoint, fingerprint
@@ -36,6 +39,7 @@ from .fit import (
     DEFAULT_CHUNK,
     PARTIAL,
     ChunkPlan,
+    begin_output,
     check_settings,
     fit_chunk,
     fit_in_process,
@@ -43,13 +47,14 @@ from .fit import (
     run_chunks,
     write_fit,
 )
-from .ingest import DEFAULT_MEMORY_GB, ingest_capture
+from .ingest import DEFAULT_MEMORY_GB, ingest_capture, repair_store
 from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, TexelFit
-from .store import DEFAULT_STORE_DTYPE, ObservationStore, is_store, open_store
+from .store import DEFAULT_STORE_DTYPE, ObservationStore, StoreDamaged, is_store, open_store
 
 __all__ = ["fit_store", "fit_store_maps", "fit_capture", "STORE_SUBDIR"]
 
 STORE_SUBDIR = ".store"  # where `fit_capture` ingests a capture inside BTF_DIR
+MAX_REPAIRS = 3   # rounds of damage found while fitting and written again before the fit gives up
 
 
 @functools.lru_cache(maxsize=4)
@@ -120,20 +125,39 @@ def fit_store(store_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, solve
               pyramid: bool = True, scheduler=None, progress: bool | None = None,
               meta: dict | None = None) -> Path:
     """Observation store -> BTF directory (tiles checkpointed in `BTF_DIR/.partial/`, resumable).
-    Raises `InputError` for a missing, unfinished or foreign store before anything is written."""
+
+    Raises `InputError` for a missing, unfinished, foreign or inconsistent store before anything is
+    written. Damaged chunks (missing, truncated, corrupt: `fitting.store.StoreDamaged`), found from the
+    file listing before the fit or when a tile reads them, are written again from the store's capture
+    when it is at hand (`fitting.ingest.repair_store`) and the fit goes on; otherwise it stops naming
+    the chunk. Holds `BTF_DIR/.lock` (`OutputBusy` when another process writes BTF_DIR); `btf.json`,
+    the completion marker, is removed at the start and written once every level is.
+    """
     check_settings(solver, chunk, max_steps)
     store = open_store(store_dir)
     btf_dir = Path(btf_dir)
-    t0, c0 = time.perf_counter(), time.process_time()
-    maps = fit_store_maps(store, partial_dir=btf_dir / PARTIAL, solver=solver, chunk=chunk, max_steps=max_steps,
-                          model=model, scheduler=scheduler, progress=progress)
-    seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
-    info = {"capture": store.info.get("capture"), "store": {"dtype": store.dtype, "fingerprint": store.fingerprint},
-            "scheduler": describe_scheduler(scheduler)}
-    info.update(meta or {})
-    return write_fit(btf_dir, maps, store.counts(), solver=solver, chunk=chunk, max_steps=max_steps, model=model,
-                     pyramid=pyramid, seconds=seconds, cpu_seconds=None if scheduler is not None else cpu_seconds,
-                     meta=info)
+    with output_lock(btf_dir):
+        begin_output(btf_dir)
+        damage = store.scan()
+        if damage:
+            repair_store(store, damage, progress=progress)
+        t0, c0 = time.perf_counter(), time.process_time()
+        for attempt in range(MAX_REPAIRS + 1):
+            try:
+                maps = fit_store_maps(store, partial_dir=btf_dir / PARTIAL, solver=solver, chunk=chunk,
+                                      max_steps=max_steps, model=model, scheduler=scheduler, progress=progress)
+                break
+            except StoreDamaged as damaged:   # found by a tile's read: write it again, resume from the checkpoint
+                if attempt == MAX_REPAIRS:
+                    raise
+                repair_store(store, damaged.damage, progress=progress)
+        seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
+        info = {"capture": store.info.get("capture"), "store": {"dtype": store.dtype, "fingerprint": store.fingerprint},
+                "scheduler": describe_scheduler(scheduler)}
+        info.update(meta or {})
+        return write_fit(btf_dir, maps, store.counts(), solver=solver, chunk=chunk, max_steps=max_steps, model=model,
+                         pyramid=pyramid, seconds=seconds, cpu_seconds=None if scheduler is not None else cpu_seconds,
+                         meta=info)
 
 
 def fit_capture(source: str | os.PathLike, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_SOLVER,
@@ -157,17 +181,19 @@ def fit_capture(source: str | os.PathLike, btf_dir: str | os.PathLike, *, solver
                          pyramid=pyramid, scheduler=scheduler, progress=progress)
     created = not btf_dir.exists()
     store_dir = btf_dir / STORE_SUBDIR
-    t0 = time.perf_counter()
-    try:
-        # chunks of `chunk` texels: a tile of the fit reads whole chunks
-        ingest_capture(source, store_dir, dtype=store_dtype, memory_gb=memory_gb, tile=chunk, progress=progress)
-    except CaptureError:
-        if created:
-            shutil.rmtree(btf_dir, ignore_errors=True)
-        raise
-    meta = {"ingest_seconds": round(time.perf_counter() - t0, 3)}
-    out = fit_store(store_dir, btf_dir, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
-                    pyramid=pyramid, scheduler=scheduler, progress=progress, meta=meta)
-    if not keep_store:
-        shutil.rmtree(store_dir, ignore_errors=True)
-    return out
+    with output_lock(btf_dir):
+        begin_output(btf_dir)
+        t0 = time.perf_counter()
+        try:
+            # chunks of `chunk` texels: a tile of the fit reads whole chunks
+            ingest_capture(source, store_dir, dtype=store_dtype, memory_gb=memory_gb, tile=chunk, progress=progress)
+        except CaptureError:
+            if created:
+                shutil.rmtree(btf_dir, ignore_errors=True)
+            raise
+        meta = {"ingest_seconds": round(time.perf_counter() - t0, 3)}
+        out = fit_store(store_dir, btf_dir, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
+                        pyramid=pyramid, scheduler=scheduler, progress=progress, meta=meta)
+        if not keep_store:
+            shutil.rmtree(store_dir, ignore_errors=True)
+        return out

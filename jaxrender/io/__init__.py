@@ -1,9 +1,11 @@
 """File I/O at the edge of the toolkit: EXR (OpenEXR), PNG (scikit-image), BTF directories,
-colour transfer functions and tone mapping, atomic writes, and the user-input error type."""
+colour transfer functions and tone mapping, atomic writes, output locks, and the error types."""
 
 from ..errors import InputError as InputError
 from ..errors import InputErrors as InputErrors
+from ..errors import OutputBusy as OutputBusy
 from ._atomic import atomic_path as atomic_path
+from ._atomic import remove_temporaries as remove_temporaries
 from ._btf import BTF_FORMAT as BTF_FORMAT
 from ._btf import BTF_VERSION as BTF_VERSION
 from ._btf import LEVEL0_CHANNELS as LEVEL0_CHANNELS
@@ -27,3 +29,6 @@ from ._images import read_image as read_image
 from ._images import write_exr as write_exr
 from ._images import write_image as write_image
 from ._images import write_png as write_png
+from ._lock import LOCK_NAME as LOCK_NAME
+from ._lock import lock_owner as lock_owner
+from ._lock import output_lock as output_lock

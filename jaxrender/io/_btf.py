@@ -7,9 +7,10 @@ BTF_DIR/level_01.exr   ceil(H/2) x ceil(W/2): every lobe channel
 BTF_DIR/btf.json       {"format": "jaxrender-btf", "version": 1, "model": ..., "levels": [...], "units": ...}
 ```
 
-Readers must treat a directory without `btf.json` as incomplete. Writers remove `btf.json` before
-they touch any level and write it again only once every level is in place; each file is itself
-written atomically (temporary sibling, then rename).
+Readers must treat a directory without `btf.json` as incomplete, and `read_btf` refuses one (naming
+the writer when one holds the directory's lock) and one whose listed level files are not all there.
+Writers remove `btf.json` before they touch any level and write it again only once every level is
+in place; each file is itself written atomically (temporary sibling, then rename).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import numpy as np
 from ..errors import InputError
 from ._atomic import atomic_path
 from ._images import read_exr, write_exr, write_png
+from ._lock import describe_owner, lock_owner
 
 __all__ = ["BTF_FORMAT", "BTF_VERSION", "BTF_MODELS", "LOBE_CHANNELS", "LEVEL0_CHANNELS", "BTF_UNITS",
            "btf_level_name", "complete_level", "write_btf", "write_btf_levels", "read_btf", "write_btf_previews"]
@@ -212,7 +214,9 @@ def read_btf(btf_dir: str | os.PathLike, *, load: bool = True) -> tuple[dict, li
     if not btf_dir.is_dir():
         raise InputError(btf_dir, "no such BTF directory")
     if not path.is_file():
-        raise InputError(path, "missing: the BTF directory is incomplete (btf.json is written last)")
+        owner = lock_owner(btf_dir)
+        writing = f"; {describe_owner(owner)} is writing it" if owner else ""
+        raise InputError(path, f"missing: the BTF directory is incomplete (btf.json is written last){writing}")
     try:
         manifest = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
@@ -228,6 +232,9 @@ def read_btf(btf_dir: str | os.PathLike, *, load: bool = True) -> tuple[dict, li
             or not all(isinstance(e, dict) and isinstance(e.get("file"), str) and isinstance(e.get("size"), list)
                        and len(e["size"]) == 2 for e in entries)):
         raise InputError(path, "`levels` must be a non-empty list of {file, size: [H, W]}")
+    absent = [entry["file"] for entry in entries if not (btf_dir / entry["file"]).is_file()]
+    if absent:
+        raise InputError(path, f"lists level files that are not there ({', '.join(absent)}): the BTF is incomplete")
     if not load:
         return manifest, []
     levels = []
