@@ -194,8 +194,13 @@ def ingest_capture(capture_dir: str | os.PathLike, store_dir: str | os.PathLike,
     store_dir = Path(store_dir)
     t0 = time.perf_counter()
     with output_lock(store_dir):
-        return _ingest(capture_dir, store_dir, dtype=dtype, memory_gb=memory_gb, tile=tile, light_block=light_block,
-                       progress=progress, workers=workers, on_block=on_block, t0=t0)
+        try:
+            return _ingest(capture_dir, store_dir, dtype=dtype, memory_gb=memory_gb, tile=tile,
+                           light_block=light_block, progress=progress, workers=workers, on_block=on_block, t0=t0)
+        except OSError as error:
+            if error.filename is None:   # zarr's failed chunk write names no file: name the store
+                error.filename = os.fspath(store_dir)
+            raise
 
 
 def _ingest(capture_dir, store_dir: Path, *, dtype, memory_gb, tile, light_block, progress, workers, on_block,

@@ -28,12 +28,15 @@ def atomic_path(path: str | os.PathLike, *, directory: bool = False) -> Iterator
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = "".join(path.suffixes) if not directory else ""
-    if directory:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
-    else:
-        fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp" + suffix, dir=path.parent)
-        os.close(fd)
-        tmp = Path(name)
+    try:
+        if directory:
+            tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+        else:
+            fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp" + suffix, dir=path.parent)
+            os.close(fd)
+            tmp = Path(name)
+    except OSError as error:   # name the file being written, not its temporary
+        raise OSError(error.errno, error.strerror, os.fspath(path)) from None
     try:
         yield tmp
         # mkstemp / mkdtemp make the temporary private (0600 / 0700): give it the mode a plain open or
@@ -43,8 +46,9 @@ def atomic_path(path: str | os.PathLike, *, directory: bool = False) -> Iterator
             shutil.rmtree(path)
         os.replace(tmp, path)
     except BaseException as error:
-        if isinstance(error, OSError) and error.filename is None:
-            error.filename = os.fspath(path)   # a failed write() names no file: name the one being written
+        if isinstance(error, OSError) and (error.filename is None or os.fspath(error.filename) == os.fspath(tmp)):
+            error.filename = os.fspath(path)   # a failed write() names no file, or the temporary: name the target
+            error.filename2 = None
         if tmp.is_dir():
             shutil.rmtree(tmp, ignore_errors=True)
         else:

@@ -67,12 +67,18 @@ def output_lock(directory: str | os.PathLike) -> Iterator[Path]:
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / LOCK_NAME
     key = os.path.realpath(path)
-    with _GUARD:
-        held = _HELD.get(key)
-        if held is not None:
-            held[1] += 1
-        else:
-            _HELD[key] = [_acquire(path, directory), 1]
+    try:
+        with _GUARD:
+            held = _HELD.get(key)
+            if held is not None:
+                held[1] += 1
+            else:
+                _HELD[key] = [_acquire(path, directory), 1]
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):
+                directory.rmdir()
+        raise
     try:
         yield path
     finally:
