@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import errno
 import importlib
+import logging
 import os
 import sys
 import traceback
@@ -53,7 +54,9 @@ def describe_failure(error: BaseException, output: str | None = None) -> tuple[i
                                           and "RESOURCE_EXHAUSTED" in str(error)):
         return EXIT_MACHINE, f"{where}out of memory ({type(error).__name__}); free memory or lower --memory-gb/--chunk"
     if isinstance(error, OSError):
-        path = error.filename if error.filename is not None else output
+        # a failed write names no file (a full disk): name the command's output; an error without an
+        # errno (a Dask scheduler that does not answer) is not about the output
+        path = error.filename if error.filename is not None else (output if error.errno is not None else None)
         problem = error.strerror or str(error) or type(error).__name__
         if error.filename2 is not None:
             problem += f" ({os.fspath(error.filename2)})"
@@ -93,6 +96,10 @@ def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
     except Exception as error:
         if args.debug or os.environ.get(DEBUG_ENV, "") not in ("", "0"):
             traceback.print_exc()
+        else:
+            # the line below is the whole report: background tasks a failed write left behind (zarr's
+            # chunk writes) must not add their own at exit
+            logging.getLogger("asyncio").disabled = True
         code, text = describe_failure(error, _output_of(args))
         print(f"{prog} {name}: error: {text}", file=sys.stderr)
         return code
