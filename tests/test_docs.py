@@ -151,3 +151,11 @@ def test_the_notebooks_and_the_formats_page_are_rendered(site):
         assert 'class="jp-Notebook' in page.read_text() or "jp-Cell" in page.read_text(), notebook.name
     formats = _text((site / "formats" / "index.html").read_text())
     assert "Capture directory" in formats
+
+
+def test_no_docstring_renders_as_italics(site):
+    # `rho*kappa ... rho*K` or `__init__` outside backticks pair up as Markdown emphasis: the asterisks
+    # or underscores vanish and the text between them turns italic. Formulas go in backticks.
+    found = {page.parent.name: re.findall(r"<(em|strong)>(.*?)</\1>", page.read_text(), flags=re.S)
+             for page in (site / "api").glob("*/index.html")}
+    assert not {m: hits for m, hits in found.items() if hits}
