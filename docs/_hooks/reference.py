@@ -1,8 +1,9 @@
 """mkdocs hook: writes the generated pages of the reference at build time, so they never drift.
 
 - API pages: one per documented module of `jaxrender`, `fitting` and `sims`, found by walking the
-  packages with griffe (`public_modules`); mkdocstrings renders each module's public names: what
-  its `__init__` re-exports (`from ._x import Y as Y`, see `reexports.py`) or its `__all__`.
+  packages with griffe (`public_modules`): its docstring, a table of its public names (what its
+  `__init__` re-exports, `from ._x import Y as Y` (see `reexports.py`), its `__all__`, or else its
+  own top-level definitions) and one mkdocstrings entry (signature, docstring) per name.
 - CLI pages: one per program, from the argparse parsers of `jaxrender.app.cli` (`command_parser`).
 - Notebook pages: `examples/*.ipynb` (at `examples/NAME/`), rendered by mkdocs-jupyter without executing them.
 
@@ -20,13 +21,13 @@ import griffe
 from mkdocs.plugins import event_priority
 from mkdocs.structure.files import File, Files
 
-from jaxrender.app.cli.driver import command_parser
-from jaxrender.app.cli.programs import COMMAND_TABLES
-
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path[:0] = [str(ROOT), str(Path(__file__).parent)]  # this checkout's packages, then reexports.py
 
 from reexports import RedundantAliasExports  # noqa: E402
+
+from jaxrender.app.cli.driver import command_parser  # noqa: E402
+from jaxrender.app.cli.programs import COMMAND_TABLES  # noqa: E402
 
 PACKAGES = ("jaxrender", "fitting", "sims")
 UNDOCUMENTED = ("jaxrender.app.cli",)  # the command lines have their own pages
@@ -80,14 +81,20 @@ def _api_page(module: griffe.Module) -> str:
     for name in public_names(module):
         member = module[name]
         summary = _first_sentence(member.docstring.value) if member.docstring else ""
-        kind = {"attribute": "constant"}.get(member.kind.value, member.kind.value)
-        lines.append(f"| [`{name}`](#{module.path}.{name}) | {kind} | {summary.replace('|', '&#124;')} |")
+        lines.append(f"| [`{name}`](#{module.path}.{name}) | {member.kind.value} | {_markdown_cell(summary)} |")
         entries += ["", f"::: {module.path}.{name}"]
     return "\n".join(lines + entries) + "\n"
 
 
 def _cell(text: str) -> str:
-    return html.escape(" ".join(text.split())).replace("|", "&#124;")
+    """Plain text for a table cell: one line, HTML-escaped, pipes escaped."""
+    return html.escape(" ".join(text.split())).replace("|", "\\|")
+
+
+def _markdown_cell(text: str) -> str:
+    """Markdown for a table cell: pipes escaped outside code spans (the table reads those as one cell)."""
+    parts = text.split("`")
+    return "`".join(p.replace("|", "\\|") if i % 2 == 0 else p for i, p in enumerate(parts))
 
 
 def _option_rows(parser: argparse.ArgumentParser) -> list[str]:
@@ -103,8 +110,8 @@ def _option_rows(parser: argparse.ArgumentParser) -> list[str]:
         elif action.nargs == 0 or action.default in (None, argparse.SUPPRESS):
             default = ""
         else:
-            default = f"`{_cell(str(action.default))}`"
-        rows.append(f"| `{_cell(formatter._format_action_invocation(action))}` | {default} | "
+            default = f"`{action.default}`"
+        rows.append(f"| `{formatter._format_action_invocation(action)}` | {default} | "
                     f"{_cell(action.help or '')} |")
     return rows
 
