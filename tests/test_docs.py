@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import ast
 import html
+import json
 import os
 import re
 import subprocess
 import sys
 from pathlib import Path
-
-import pytest
 
 from jaxrender.app.cli.driver import command_parser
 from jaxrender.app.cli.programs import COMMAND_TABLES
@@ -100,15 +99,64 @@ def _text(page: str) -> str:
     return " ".join(html.unescape(re.sub(r"<[^>]+>", "", page)).split())
 
 
-@pytest.fixture(scope="module")
-def site(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("docs") / "site"
+def _build(out: Path) -> None:
     env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}
     build = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--config-file",
                             str(ROOT / "mkdocs.yml"), "--site-dir", str(out)],
                            cwd=ROOT, env=env, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
     assert build.returncode == 0, f"mkdocs build --strict failed:\n{build.stdout}\n{build.stderr}"
-    return out
+
+
+def _api_problems(site: Path) -> list[str]:
+    """Public names without an entry on their module's page, shapes missing from the signatures, and
+    text that renders as italics (`rho*kappa ... rho*K` or `__init__` outside backticks pair up as
+    Markdown emphasis: the asterisks or underscores vanish; formulas go in backticks)."""
+    problems = []
+    for module, names in DOCUMENTED.items():
+        path = site / "api" / module / "index.html"
+        if not path.is_file():
+            problems.append(f"{module}: no page")
+            continue
+        page = path.read_text()
+        anchors = set(re.findall(r'id="([^"]+)"', page))
+        if missing := [n for n in names if f"{module}.{n}" not in anchors]:
+            problems.append(f"{module}: no entry for {missing}")
+        text = _text(page)
+        shapes = set().union(*(_shapes(node) for node in names.values()))
+        if missing := sorted(s for s in shapes if s not in text):
+            problems.append(f"{module}: shapes missing from the signatures: {missing}")
+        if italics := re.findall(r"<(?:em|strong)>(.*?)</(?:em|strong)>", page, flags=re.S):
+            problems.append(f"{module}: renders as italics (put formulas in backticks): {italics}")
+    return problems
+
+
+def _cli_problems(site: Path) -> list[str]:
+    problems = []
+    for program, (_, commands) in COMMAND_TABLES.items():
+        page = (site / "cli" / program / "index.html").read_text()
+        text = _text(page)
+        for name in commands:
+            _, parser = command_parser(program, name, commands)
+            options = [s for action in parser._actions for s in action.option_strings]  # argparse: no public list
+            if f'id="{program}-{name}"' not in page or [s for s in options if s not in text]:
+                problems.append(f"{program} {name}: no section, or options missing from it")
+    return problems
+
+
+def _page_problems(site: Path) -> list[str]:
+    """Notebooks without a page or whose code is not on it; the formats page."""
+    notebooks = sorted((ROOT / "examples").glob("*.ipynb"))
+    problems = [] if notebooks else ["no notebooks found in examples/"]
+    for notebook in notebooks:
+        page = site / "examples" / notebook.stem / "index.html"
+        text = _text(page.read_text()) if page.is_file() else ""
+        cells = [c for c in json.loads(notebook.read_text())["cells"] if c["cell_type"] == "code"]
+        firsts = [" ".join(line.split()) for c in cells for line in ["".join(c["source"]).strip().split("\n")[0]]]
+        if not text or [line for line in firsts if line not in text]:
+            problems.append(f"{notebook.name}: no page, or its code is not on it")
+    if "Capture directory" not in _text((site / "formats" / "index.html").read_text()):
+        problems.append("formats.md: not rendered")
+    return problems
 
 
 def test_the_public_names_are_read_from_the_sources():
@@ -119,43 +167,9 @@ def test_the_public_names_are_read_from_the_sources():
     assert not any(m.startswith(UNDOCUMENTED) for m in DOCUMENTED)
 
 
-@pytest.mark.parametrize("module", sorted(DOCUMENTED))
-def test_every_public_name_has_an_entry_with_its_shapes(site, module):
-    page = (site / "api" / module / "index.html").read_text()
-    anchors = set(re.findall(r'id="([^"]+)"', page))
-    missing = [n for n in DOCUMENTED[module] if f"{module}.{n}" not in anchors]
-    assert not missing, f"{module}: no entry for {missing}"
-    text = _text(page)
-    shapes = set().union(*(_shapes(node) for node in DOCUMENTED[module].values()))
-    assert not [s for s in shapes if s not in text], f"{module}: shapes missing from the signatures"
-
-
-@pytest.mark.parametrize("program", sorted(COMMAND_TABLES))
-def test_every_subcommand_and_option_is_on_its_cli_page(site, program):
-    page = (site / "cli" / program / "index.html").read_text()
-    text = _text(page)
-    _, commands = COMMAND_TABLES[program]
-    for name in commands:
-        assert f'id="{program}-{name}"' in page, f"{program} {name}: no section"
-        _, parser = command_parser(program, name, commands)
-        options = [s for action in parser._actions for s in action.option_strings]  # argparse has no public list
-        assert not [s for s in options if s not in text], f"{program} {name}: options missing"
-
-
-def test_the_notebooks_and_the_formats_page_are_rendered(site):
-    notebooks = sorted((ROOT / "examples").glob("*.ipynb"))
-    assert notebooks
-    for notebook in notebooks:
-        page = site / "examples" / notebook.stem / "index.html"
-        assert page.is_file(), f"{notebook.name}: no page"
-        assert 'class="jp-Notebook' in page.read_text() or "jp-Cell" in page.read_text(), notebook.name
-    formats = _text((site / "formats" / "index.html").read_text())
-    assert "Capture directory" in formats
-
-
-def test_no_docstring_renders_as_italics(site):
-    # `rho*kappa ... rho*K` or `__init__` outside backticks pair up as Markdown emphasis: the asterisks
-    # or underscores vanish and the text between them turns italic. Formulas go in backticks.
-    found = {page.parent.name: re.findall(r"<(em|strong)>(.*?)</\1>", page.read_text(), flags=re.S)
-             for page in (site / "api").glob("*/index.html")}
-    assert not {m: hits for m, hits in found.items() if hits}
+def test_the_reference_builds_strictly_and_shows_every_public_name(tmp_path):
+    # one test, one build: under `pytest -n 2` a fixture shared by several tests could build twice
+    site = tmp_path / "site"
+    _build(site)
+    problems = _api_problems(site) + _cli_problems(site) + _page_problems(site)
+    assert not problems, "\n".join(problems)
