@@ -11,8 +11,19 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+from types import ModuleType
 
 from jaxrender.errors import InputError
+
+
+def command_parser(prog: str, name: str, commands: dict[str, tuple[str, str]]
+                   ) -> tuple[ModuleType, argparse.ArgumentParser]:
+    """The subcommand's module (imported now) and its configured parser (also read by the docs' CLI pages)."""
+    module_path, help_ = commands[name]
+    module = importlib.import_module(module_path)
+    parser = argparse.ArgumentParser(prog=f"{prog} {name}", description=help_)
+    module.configure(parser)
+    return module, parser
 
 
 def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
@@ -29,10 +40,7 @@ def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
         print(text)
         return 0 if argv else 2
     name = argv[0]
-    module_path, help_ = commands[name]
-    module = importlib.import_module(module_path)
-    parser = argparse.ArgumentParser(prog=f"{prog} {name}", description=help_)
-    module.configure(parser)
+    module, parser = command_parser(prog, name, commands)
     args = parser.parse_args(argv[1:])
     try:
         return int(module.run(args) or 0)
