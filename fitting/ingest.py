@@ -29,7 +29,7 @@ from jaxrender.io import InputError, atomic_path
 
 from .capture import MAX_IMAGE_PROBLEMS, Capture, CaptureError, load_capture
 from .checkpoint import fingerprint
-from .hdr import observe
+from .hdr import observe, thresholds
 from .store import (
     DARK,
     DEFAULT_STORE_DTYPE,
@@ -106,6 +106,8 @@ def _create(store_dir: Path, capture: Capture, *, dtype: str, tile: int, block: 
     group.create_array("ratio", shape=(t, n, 3), chunks=(tile, block, 3), dtype=dtype, fill_value=0)
     group.create_array("flags", shape=(t, n), chunks=(tile, block), dtype="uint8", fill_value=0)
     group.create_array("counts", shape=(t, 3), chunks=(tile * 16, 3), dtype="int32", fill_value=0)
+    mask = group.create_array("mask", shape=(t,), chunks=(tile * 16,), dtype="uint8", fill_value=0)
+    mask[:] = capture.read_mask().reshape(-1).astype(np.uint8)
     with atomic_path(store_dir / PROGRESS / "config.json") as tmp:  # last: the arrays exist
         tmp.write_text(json.dumps({"fingerprint": fingerprint}))
 
@@ -176,14 +178,17 @@ def ingest_capture(capture_dir: str | os.PathLike, store_dir: str | os.PathLike,
         problems = [line for _, lines in white_results for line in lines]
         if problems:  # still nothing written
             raise CaptureError(problems)
+        mask_problems = [] if capture.mask is None else capture.read_checked(capture.mask)[1]
+        if mask_problems:
+            raise CaptureError(mask_problems)
         state = _start(store_dir, fingerprint_)
         if state == "done":
             return store_dir
         if state == "new":
             _create(store_dir, capture, dtype=dtype, tile=tile, block=block, fingerprint=fingerprint_)
-        white = np.stack([c for c, _ in white_results])
+        white = np.stack([c for c, _ in white_results]) if capture.has_white else None
         exposures = np.asarray(capture.exposures_s, np.float32)
-        reflectance = np.asarray(capture.white_reflectance, np.float32)
+        reflectance = np.asarray(capture.white_reflectance, np.float32) if capture.has_white else None
         blocks = [range(s, min(s + block, capture.n_lights)) for s in range(0, capture.n_lights, block)]
         todo = [i for i in range(len(blocks)) if not (store_dir / PROGRESS / f"block_{i:06d}").exists()]
         _store_blocks(store_dir, capture, blocks, todo, white, exposures, reflectance, pool, prefetch,
@@ -192,7 +197,10 @@ def ingest_capture(capture_dir: str | os.PathLike, store_dir: str | os.PathLike,
                 "light_dirs": capture.light_dirs.tolist(), "view_dir": capture.view_dir.tolist(),
                 "light_angles": np.asarray(capture.light_angles).tolist(), "view_angles": list(capture.view_angles),
                 "exposures_s": list(capture.exposures_s), "response": capture.response,
-                "white_reflectance": capture.white_reflectance.tolist(), "capture": str(capture.root),
+                "encoding": capture.encoding, "saturation": capture.saturation,
+                "white_reflectance": None if not capture.has_white else capture.white_reflectance.tolist(),
+                "light_intensities": None if capture.light_intensities is None
+                else capture.light_intensities.tolist(), "mask": capture.mask is not None, "capture": str(capture.root),
                 "fingerprint": fingerprint_, "ingest_seconds": round(time.perf_counter() - t0, 3)}
         _finish(store_dir, capture, tile=tile, info=info)
         return store_dir
@@ -213,6 +221,7 @@ def _store_blocks(store_dir, capture, blocks, todo, white, exposures, reflectanc
     group = zarr.open_group(str(store_dir), mode="r+")
     ratio_arr, flags_arr = group["ratio"], group["flags"]
     t = capture.size[0] * capture.size[1]
+    mask = np.asarray(group["mask"][:]).reshape(capture.size) > 0
     done = sum(len(b) for i, b in enumerate(blocks) if i not in set(todo))
     bar = tqdm(total=capture.n_lights, initial=done, unit="light", desc="ingest",
                disable=None if progress is None else not progress)
@@ -221,9 +230,13 @@ def _store_blocks(store_dir, capture, blocks, todo, white, exposures, reflectanc
         codes = future.result()
         if k + 1 < len(todo):  # read the next block while this one merges and is written
             future = prefetch.submit(_read_block, capture, pool, blocks[todo[k + 1]], block)
-        ratio, valid, saturated, dark = observe(codes, exposures, white, reflectance, response=capture.response)
-        del codes
         n = len(blocks[i])
+        intensities = np.ones((block, 3), np.float32)
+        intensities[:n] = capture.intensities()[blocks[i].start:blocks[i].stop]
+        ratio, valid, saturated, dark = observe(codes, exposures, white, reflectance, response=capture.merge_response,
+                                                intensities=intensities, mask=mask,
+                                                levels=thresholds(capture.encoding, capture.saturation))
+        del codes
         lights = slice(blocks[i].start, blocks[i].stop)
         r = np.asarray(ratio).reshape(t, block, 3)[:, :n]
         if dtype == "float16":

@@ -9,6 +9,7 @@ STORE_DIR/zarr.json     zarr v3 group
 STORE_DIR/ratio/        T x L x 3   float16 (default) or float32: observed reflectance, 0 where invalid
 STORE_DIR/flags/        T x L       uint8: bit 0 valid, bit 1 a channel saturated, bit 2 a channel dark
 STORE_DIR/counts/       T x 3       int32: n_valid, n_saturated, n_dark (written after the last light)
+STORE_DIR/mask/         T           uint8: 1 for the texels to fit (the capture's mask; all 1 without one)
 STORE_DIR/.ingest/      progress of an unfinished ingest (one marker per finished light block)
 STORE_DIR/store.json    written last: format, version, size, lights, view, dtype, chunking, fingerprint
 ```
@@ -68,6 +69,7 @@ class ObservationStore:
         self.path, self.info = path, info
         group = zarr.open_group(str(path), mode="r")
         self._ratio, self._flags, self._counts = group["ratio"], group["flags"], group["counts"]
+        self._mask = group["mask"] if "mask" in group else None  # stores written before masks existed: all in
         self.size = (int(info["size"][0]), int(info["size"][1]))
         self.light_dirs = np.asarray(info["light_dirs"], np.float64)
         self.view_dir = np.asarray(info["view_dir"], np.float64)
@@ -96,6 +98,12 @@ class ObservationStore:
     def flags(self, start: int, count: int) -> np.ndarray:
         return np.asarray(self._flags[start:start + count])
 
+    def mask(self) -> np.ndarray:
+        """`H W` bool: the texels to fit."""
+        if self._mask is None:
+            return np.ones(self.size, bool)
+        return np.asarray(self._mask[:]).reshape(self.size) > 0
+
     def counts(self) -> ObservationCounts:
         """`H W` int32 maps n_valid, n_saturated, n_dark."""
         counts = np.asarray(self._counts[:]).reshape(self.size + (3,))
@@ -113,7 +121,7 @@ class ObservationStore:
                             light_dirs=jnp.asarray(self.light_dirs.astype(np.float32)),
                             view_dir=jnp.asarray(self.view_dir.astype(np.float32)),
                             n_valid=jnp.asarray(counts.n_valid), n_saturated=jnp.asarray(counts.n_saturated),
-                            n_dark=jnp.asarray(counts.n_dark))
+                            n_dark=jnp.asarray(counts.n_dark), mask=jnp.asarray(self.mask()))
 
 
 def open_store(store_dir: str | os.PathLike) -> ObservationStore:

@@ -39,7 +39,9 @@ from .fit import (
     check_settings,
     fit_chunk,
     fit_in_process,
+    observation_summary,
     plan_chunks,
+    read_chunk,
     run_chunks,
     write_fit,
 )
@@ -66,9 +68,9 @@ def fit_tile(store_dir: str, fingerprint_: str, partial: str, index: int, chunk:
     """Fit tile `index` of a store and write it to the checkpoint `partial` (atomically); a Dask task.
     Returns `index`."""
     store = _worker_store(store_dir, fingerprint_)
-    plan = plan_chunks(store.size, chunk)  # this process's devices
-    fit = fit_chunk(store.read, plan, index, store.light_dirs.astype(np.float32), store.view_dir.astype(np.float32),
-                    model=model, solver=solver, max_steps=max_steps)
+    plan = plan_chunks(store.size, chunk, store.mask())  # this process's devices
+    fit = fit_chunk(*read_chunk(store.read, plan, index), plan, index, store.light_dirs.astype(np.float32),
+                    store.view_dir.astype(np.float32), model=model, solver=solver, max_steps=max_steps)
     Checkpoint(partial).save(index, fit)
     return index
 
@@ -103,7 +105,7 @@ def fit_store_maps(store: ObservationStore, *, partial_dir: str | os.PathLike, s
     check_settings(solver, chunk, max_steps)
     settings = {"solver": solver, "chunk": chunk, "max_steps": max_steps, "model": model, "source": "store"}
     checkpoint = Checkpoint(partial_dir).prepare(fingerprint(settings, store.fingerprint))
-    plan = plan_chunks(store.size, chunk)
+    plan = plan_chunks(store.size, chunk, store.mask())
     if scheduler is None:
         fit_todo = fit_in_process(store.read, plan, checkpoint, store.light_dirs.astype(np.float32),
                                   store.view_dir.astype(np.float32), solver=solver, max_steps=max_steps, model=model,
@@ -124,6 +126,8 @@ def fit_store(store_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, solve
     check_settings(solver, chunk, max_steps)
     store = open_store(store_dir)
     btf_dir = Path(btf_dir)
+    counts, mask = store.counts(), store.mask()
+    observation_summary(counts, mask, store.info.get("capture") or store_dir)  # before any work
     t0, c0 = time.perf_counter(), time.process_time()
     maps = fit_store_maps(store, partial_dir=btf_dir / PARTIAL, solver=solver, chunk=chunk, max_steps=max_steps,
                           model=model, scheduler=scheduler, progress=progress)
@@ -131,7 +135,7 @@ def fit_store(store_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, solve
     info = {"capture": store.info.get("capture"), "store": {"dtype": store.dtype, "fingerprint": store.fingerprint},
             "scheduler": describe_scheduler(scheduler)}
     info.update(meta or {})
-    return write_fit(btf_dir, maps, store.counts(), solver=solver, chunk=chunk, max_steps=max_steps, model=model,
+    return write_fit(btf_dir, maps, counts, mask=mask, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
                      pyramid=pyramid, seconds=seconds, cpu_seconds=None if scheduler is not None else cpu_seconds,
                      meta=info)
 
