@@ -36,12 +36,14 @@ class LambertianFit(eqx.Module):
 @jax.jit
 def lambertian_fit(obs: Observations) -> LambertianFit:
     """Classic photometric stereo per channel: b_c = argmin sum_l w_l (R_lc - l . b_c)^2 (valid
-    observations only, a tiny ridge for texels with fewer than 3), n = b / |b| of the channels' sum,
+    observations only, a ridge at rounding level for texels with fewer than 3), n = b / |b| of the channels' sum,
     albedo_c = n . b_c (>= 0)."""
     dirs = jnp.asarray(obs.light_dirs, obs.ratio.dtype)
     w = obs.weight
     gram = jnp.einsum("hwl,lj,lk->hwjk", w, dirs, dirs)
-    gram = gram + 1e-6 * (jnp.trace(gram, axis1=-2, axis2=-1)[..., None, None] + 1e-6) * jnp.eye(3)
+    eps = 10 * jnp.finfo(gram.dtype).eps  # a ridge at rounding level: texels with < 3 lights stay finite
+    ridge = eps * (jnp.trace(gram, axis1=-2, axis2=-1) + eps)
+    gram = gram + ridge[..., None, None] * jnp.eye(3, dtype=gram.dtype)[None, None]
     rhs = jnp.einsum("hwl,hwlc,lj->hwjc", w, obs.ratio, dirs)  # 3 x channels
     b = jnp.linalg.solve(gram, rhs)  # H W 3 C
     total = jnp.sum(b, axis=-1)

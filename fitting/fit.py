@@ -79,18 +79,24 @@ def _tile_fit(tile: int, model: str, solver: str, max_steps: int):
 
 
 def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_steps) -> TexelFit:
-    """Fit `n_devices * per_device` texels (already padded) over the local devices; flat numpy leaves."""
+    """Fit `n_devices * per_device` texels (already padded) over the local devices; flat numpy leaves.
+
+    Float32 observations are fitted by a float32 program even where a notebook or test switched on
+    x64 (optimistix's damping constants would otherwise turn into float64 and its structure check fails)."""
     devices = jax.local_devices()
     fn = _tile_fit(tile, model, solver, max_steps)
     per_device = ratio.shape[0] // len(devices)
+    dtype = np.asarray(ratio).dtype
     outs = []
-    for d, dev in enumerate(devices):   # dispatched asynchronously: the devices run at once
-        share = slice(d * per_device, (d + 1) * per_device)
-        place = jax.sharding.SingleDeviceSharding(dev)
-        r = jax.device_put(ratio[share].reshape((-1, tile) + ratio.shape[1:]), place)
-        w = jax.device_put(weight[share].reshape((-1, tile) + weight.shape[1:]), place)
-        dirs, view = jax.device_put(np.asarray(light_dirs), place), jax.device_put(np.asarray(view_dir), place)
-        outs.append(fn(r, w, dirs, view))
+    with jax.enable_x64(dtype == np.float64):
+        for d, dev in enumerate(devices):   # dispatched asynchronously: the devices run at once
+            share = slice(d * per_device, (d + 1) * per_device)
+            place = jax.sharding.SingleDeviceSharding(dev)
+            r = jax.device_put(ratio[share].reshape((-1, tile) + ratio.shape[1:]), place)
+            w = jax.device_put(weight[share].reshape((-1, tile) + weight.shape[1:]), place)
+            dirs = jax.device_put(np.asarray(light_dirs, dtype), place)
+            view = jax.device_put(np.asarray(view_dir, dtype), place)
+            outs.append(fn(r, w, dirs, view))
     return jax.tree.map(lambda *shares: np.concatenate([np.asarray(x) for x in shares]), *outs)
 
 

@@ -264,8 +264,8 @@ def write_manifest(csv_path: str | os.PathLike, out: str | os.PathLike, *, respo
     return _write(out, manifest)
 
 
-def _table(path: Path, columns: int, problems: Problems) -> list[list[float]] | None:
-    """Rows of `columns` numbers of a whitespace-separated text file (one problem per bad line)."""
+def _table(path: Path, columns: int, problems: Problems) -> list[list[float] | None] | None:
+    """Rows of `columns` numbers of a whitespace-separated text file (None for a bad line, noted)."""
     try:
         lines = path.read_text().splitlines()
     except (OSError, UnicodeDecodeError) as error:
@@ -278,7 +278,7 @@ def _table(path: Path, columns: int, problems: Problems) -> list[list[float]] | 
         values = [_number(v) for v in text.replace(",", " ").split()]
         if len(values) != columns or None in values:
             problems.add(f"{path}:{number}: expected {columns} numbers, got {text.strip()!r}")
-            continue
+            values = None
         rows.append(values)
     return rows
 
@@ -301,6 +301,8 @@ def _folder_lights(folder: Path, problems: Problems) -> tuple[list[str], list, l
         problems.add(f"{folder}: row counts differ: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
         return None
     for i, (d, inten) in enumerate(zip(dirs, intensities), start=1):
+        if d is None or inten is None:
+            continue  # (noted)
         norm = math.sqrt(sum(x * x for x in d))
         if abs(norm - 1.0) > UNIT_TOLERANCE:
             problems.add(f"{folder / 'light_directions.txt'}:{i}: {d} is not a unit vector (length {norm:.4g})")
