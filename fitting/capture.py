@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
-import itertools
 import json
+import math
 import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -205,21 +205,22 @@ def _exposures(doc: Fields) -> tuple[float, ...] | None:
     return tuple(float(e) for e in exposures)
 
 
-def _direction(f: Fields) -> np.ndarray | None:
+def _direction(f: Fields) -> tuple[float, float, float] | None:
     """A unit vector toward the light (camera) from `direction` [x, y, z] or `theta_deg`/`phi_deg`,
-    strictly above the horizon."""
+    strictly above the horizon (plain floats: a million lights are read without an array each)."""
     if f.has("direction"):
-        d = f.vector("direction")
-        if d is None:
+        d = f.raw("direction")
+        if not (isinstance(d, list) and len(d) == 3 and all(is_number(x) for x in d)):
+            f.problem("direction", f"expected a list of 3 numbers, got {d!r}")
             return None
-        norm = float(np.linalg.norm(d))
+        norm = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         if abs(norm - 1.0) > UNIT_TOLERANCE:
-            f.problem("direction", f"{d.tolist()} is not a unit vector (length {norm:.4g})")
+            f.problem("direction", f"{[float(x) for x in d]} is not a unit vector (length {norm:.4g})")
             return None
         if d[2] <= 0:
-            f.problem("direction", f"{d.tolist()} is at or below the horizon (z must be > 0)")
+            f.problem("direction", f"{[float(x) for x in d]} is at or below the horizon (z must be > 0)")
             return None
-        return d / norm
+        return (d[0] / norm, d[1] / norm, d[2] / norm)
     theta, phi = f.raw("theta_deg"), f.raw("phi_deg")  # (a missing one is noted)
     ok = True
     if theta is not None and not is_number(theta):
@@ -236,7 +237,8 @@ def _direction(f: Fields) -> np.ndarray | None:
         ok = False
     if theta is None or phi is None or not ok:
         return None
-    return direction_from_angles(theta, phi)
+    t, p = math.radians(theta), math.radians(phi)
+    return (math.sin(t) * math.cos(p), math.sin(t) * math.sin(p), math.cos(t))
 
 
 def _images(f: Fields, key: str, n_exposures: int | None) -> list[str] | None:
@@ -260,21 +262,43 @@ def _white(f: Fields, n_exposures: int | None) -> tuple[np.ndarray | None, list[
     return refl, _images(f, "images", n_exposures)
 
 
-def _lights(doc: Fields, n_exposures: int | None):
-    """(directions `L 3`, image names per light, intensities `L 3` or None) of the valid lights."""
-    items = doc.items("lights", nonempty=True)
-    dirs, names, intensities, with_intensity = [], [], [], 0
-    for f in items:
-        f.known(("theta_deg", "phi_deg", "direction", "intensity", "images"))
-        dirs.append(_direction(f))
-        names.append(_images(f, "images", n_exposures))
-        if f.has("intensity"):
-            with_intensity += 1
-            intensities.append(f.rgb("intensity", positive=True))
-    if 0 < with_intensity < len(items):
-        doc.problem("lights", f"{with_intensity} of {len(items)} lights carry an intensity: give every light one, "
-                              "or none")
-    return dirs, names, (intensities if with_intensity == len(items) and items else None)
+def _lights(doc: Fields, n_exposures: int | None, root: Path, images: "_ImageChecker"):
+    """(directions `L 3`, image names per light (the manifest's own lists), intensities `L 3` or None,
+    the set of "is EXR" of their images), reading the lights and checking their images a batch of
+    `_CHECK_BATCH` at a time: the first problems of a huge manifest stop it within seconds."""
+    entries = doc.raw("lights")
+    if entries is None:
+        return np.zeros((0, 3)), [], None, set()
+    if not isinstance(entries, list) or not entries:
+        doc.problem("lights", "must be a non-empty list of lights")
+        return np.zeros((0, 3)), [], None, set()
+    n = len(entries)
+    dirs, intensities = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+    names: list = [None] * n
+    with_intensity, exr = 0, set()
+    for start in range(0, n, _CHECK_BATCH):
+        paths = []
+        for i in range(start, min(start + _CHECK_BATCH, n)):
+            f = Fields(entries[i], f"lights[{i}]", doc.source, doc.problems)
+            if not f.valid:
+                f.problem(None, "expected an object")
+                continue
+            f.known(("theta_deg", "phi_deg", "direction", "intensity", "images"))
+            d = _direction(f)
+            if d is not None:
+                dirs[i] = d
+            names[i] = _images(f, "images", n_exposures)
+            if f.has("intensity"):
+                with_intensity += 1
+                rgb = f.rgb("intensity", positive=True)
+                if rgb is not None:
+                    intensities[i] = rgb
+            paths += [root / name for name in names[i] or ()]
+            exr |= {name.lower().endswith(".exr") for name in names[i] or ()}
+        images.check(paths)
+    if 0 < with_intensity < n:
+        doc.problem("lights", f"{with_intensity} of {n} lights carry an intensity: give every light one, or none")
+    return dirs, names, (intensities if with_intensity == n else None), exr
 
 
 def _read_manifest(root: Path) -> dict:
@@ -328,26 +352,31 @@ def _image_problems(path: Path, size: tuple[int, int] | None, check_pixels: bool
     return problems, tuple(shape)
 
 
-def _check_images(paths: Iterator[Path], size, problems, *, check_pixels: bool, headers_only: bool,
-                  workers: int) -> None:
-    """Every image checked (threads: the decoders release the GIL) in rounds of `_CHECK_BATCH`, each
-    problem noted; `problems` stops the check once it holds `MAX_PROBLEMS` lines. Without a usable
-    size in the manifest the images must agree with the first readable one."""
-    first = None
-    seen: set[Path] = set()
-    with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        while batch := [p for p in itertools.islice(paths, _CHECK_BATCH) if not (p in seen or seen.add(p))]:
-            results = pool.map(lambda p: _image_problems(p, size, check_pixels, headers_only), batch)
-            for path, (lines, shape) in zip(batch, results, strict=True):
-                problems.extend(lines)
-                if size is None and shape is not None:
-                    if first is None:
-                        first = (path, shape)
-                    elif shape != first[1]:
-                        problems.add(f"{path}: size {shape[0]}x{shape[1]} differs from {first[0]}'s "
-                                     f"{first[1][0]}x{first[1][1]}")
-            if len(seen) > 4 * _CHECK_BATCH:
-                seen.clear()  # duplicates are only skipped nearby: memory stays bounded
+class _ImageChecker:
+    """Checks images batch by batch (threads: the decoders release the GIL), noting each problem;
+    the shared `Problems` stops the validation at `MAX_PROBLEMS` lines. Without a usable size in
+    the manifest the images must agree with the first readable one."""
+
+    def __init__(self, size, problems, *, check_pixels: bool, headers_only: bool, workers: int):
+        self.size, self.problems = size, problems
+        self.options = dict(check_pixels=check_pixels, headers_only=headers_only)
+        self.first = None
+        self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers))
+
+    def check(self, paths: list[Path]) -> None:
+        paths = list(dict.fromkeys(paths))
+        results = self.pool.map(lambda p: _image_problems(p, self.size, **self.options), paths)
+        for path, (lines, shape) in zip(paths, results, strict=True):
+            self.problems.extend(lines)
+            if self.size is None and shape is not None:
+                if self.first is None:
+                    self.first = (path, shape)
+                elif shape != self.first[1]:
+                    self.problems.add(f"{path}: size {shape[0]}x{shape[1]} differs from {self.first[0]}'s "
+                                      f"{self.first[1][0]}x{self.first[1][1]}")
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
 
 
 def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, headers_only: bool = False,
@@ -382,31 +411,30 @@ def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, h
     view = _direction(view_fields) if view_fields.valid else None
     white_fields = doc.section("white", required=False)
     reflectance, white_names = _white(white_fields, None if exposures is None else len(exposures))
-    dirs, names, intensities = _lights(doc, None if exposures is None else len(exposures))
-    if not white_fields.valid and intensities is None and doc.has("lights"):
-        doc.problem("white", "missing (a capture needs a white board unless every light carries an intensity)")
     mask_name = doc.string("mask", default=None)
     saturation = doc.number("saturation", default=None, lo=0.0, lo_open=True)
-    lights_ok = bool(dirs) and all(d is not None for d in dirs) and all(n is not None for n in names)
-
-    # every image, once, after the manifest's own problems (a typo is found before any file is opened)
-    images = ImageLists(root, [n for n in names if n is not None])
     white_paths = [root / p for p in (white_names or [])]
-    mask_paths = [] if mask_name is None else [root / mask_name]
-    exr = {name.lower().endswith(".exr") for name in itertools.chain(white_names or [], *(n for n in names if n))}
+    # the images with the entries that name them, batch by batch (the problems stop at MAX_PROBLEMS)
+    images = _ImageChecker(size, doc.problems, check_pixels=check_pixels, headers_only=headers_only, workers=workers)
+    try:
+        images.check(white_paths + ([] if mask_name is None else [root / mask_name]))
+        dirs, names, intensities, exr = _lights(doc, None if exposures is None else len(exposures), root, images)
+    finally:
+        images.close()
+    if not white_fields.valid and intensities is None and doc.has("lights"):
+        doc.problem("white", "missing (a capture needs a white board unless every light carries an intensity)")
+    exr |= {name.lower().endswith(".exr") for name in white_names or ()}
     if len(exr) > 1:
         doc.problem("lights", "the capture mixes EXR radiance and integer images: use one kind")
-    _check_images(itertools.chain(white_paths, images.all_paths(), mask_paths), size, doc.problems,
-                  check_pixels=check_pixels, headers_only=headers_only, workers=workers)
     doc.problems.check()
-    if not lights_ok or response is None or exposures is None or view is None or size is None:
+    if response is None or exposures is None or view is None or size is None or np.isnan(dirs).any():
         raise CaptureError([f"{manifest_path}: incomplete"])  # (every missing field was noted above)
     encoding = "radiance" if exr == {True} else "codes"
     return Capture(
-        root=root.resolve(), size=size, response=response, exposures_s=exposures, view_dir=view,
-        light_dirs=np.asarray(dirs, np.float64).reshape(-1, 3), light_images=ImageLists(root.resolve(), names),
+        root=root.resolve(), size=size, response=response, exposures_s=exposures, view_dir=np.asarray(view),
+        light_dirs=dirs, light_images=ImageLists(root.resolve(), names),
         white_images=tuple(p.resolve() if not p.is_absolute() else p for p in white_paths),
         white_reflectance=reflectance,
-        light_intensities=None if intensities is None else np.asarray(intensities, np.float64).reshape(-1, 3),
+        light_intensities=intensities,
         mask=None if mask_name is None else (root / mask_name).resolve(), saturation=saturation, encoding=encoding,
         manifest=doc.data)

@@ -86,36 +86,38 @@ def _write(out: Path, manifest: dict) -> Path:
     return out
 
 
-def _check_options(response, white_reflectance, view) -> list[str]:
-    problems = []
+def _check_options(response, white_reflectance, view, problems: Problems) -> None:
     if response not in RESPONSES:
-        problems.append(f"--response: {response!r} is not one of {RESPONSES}")
+        problems.add(f"--response: {response!r} is not one of {RESPONSES}")
     refl = white_reflectance if isinstance(white_reflectance, list) else [white_reflectance]
     if len(refl) not in (1, 3) or not all(_number(str(r)) is not None and float(r) > 0 for r in refl):
-        problems.append(f"--white-reflectance: {white_reflectance!r} is not a positive number or RGB triple")
+        problems.add(f"--white-reflectance: {white_reflectance!r} is not a positive number or RGB triple")
     if not (len(view) == 2 and all(_number(str(v)) is not None for v in view) and 0 <= float(view[0]) < 90):
-        problems.append(f"--view: {view!r} is not THETA PHI with theta in [0, 90)")
-    return problems
+        problems.add(f"--view: {view!r} is not THETA PHI with theta in [0, 90)")
 
 
-def _read_csv(csv_path: Path, problems: list[str]) -> tuple[list[tuple[int, dict]], list[str]]:
+def _read_csv(csv_path: Path, problems: Problems) -> list[tuple[int, dict]]:
+    """The rows (with their line numbers); the problems so far raised with the CSV's own."""
     if not csv_path.is_file():
-        raise CaptureError(problems + [f"{csv_path}: no such file"])
+        problems.add(f"{csv_path}: no such file")
+        problems.check()
     try:
         with open(csv_path, newline="", encoding="utf-8-sig") as f:
             reader = csv.DictReader(f)
             rows = [(reader.line_num, row) for row in reader]
             columns = reader.fieldnames or []
     except (OSError, UnicodeDecodeError, csv.Error) as error:
-        raise CaptureError(problems + [f"{csv_path}: not a readable CSV ({error})"]) from None
+        problems.add(f"{csv_path}: not a readable CSV ({error})")
+        problems.check()
     missing = [c for c in MANIFEST_COLUMNS if c not in columns]
     if not (set(_ANGLES) <= set(columns) or set(_VECTOR) <= set(columns)):
-        missing += [c for c in _ANGLES if c not in columns]
+        missing.append(" and ".join(c for c in _ANGLES if c not in columns) + " (or light_x, light_y, light_z)")
     if missing:
-        raise CaptureError(problems + [f"{csv_path}: missing columns {', '.join(missing)} (has {', '.join(columns)})"])
-    if not rows:
-        raise CaptureError(problems + [f"{csv_path}: no image rows"])
-    return rows, columns
+        problems.add(f"{csv_path}: missing columns {', '.join(missing)} (has {', '.join(columns)})")
+    elif not rows:
+        problems.add(f"{csv_path}: no image rows")
+    problems.check()
+    return rows
 
 
 def _row_direction(row: dict, where: str, bad: list[str]) -> tuple | None:
@@ -157,7 +159,7 @@ def _describe(key: tuple) -> str:
     return f"light ({key[1]:g}, {key[2]:g}, {key[3]:g})"
 
 
-def _rows(rows, base: Path, csv_path: Path, problems: list[str]) -> tuple[list[tuple], tuple | None]:
+def _rows(rows, base: Path, csv_path: Path, problems: Problems) -> tuple[list[tuple], tuple | None]:
     """(entries (line, key, exposure, name, intensity) of the good rows, (image size, its line))."""
     entries, size = [], None
     for line, row in rows:
@@ -188,13 +190,13 @@ def _rows(rows, base: Path, csv_path: Path, problems: list[str]) -> tuple[list[t
             bad.append(f"{where}: exposure_s: {text!r} is not a positive number of seconds")
         elif not text and exposure is None and name and path.is_file():
             bad.append(f"{where}: exposure_s: empty and {name} has no EXIF ExposureTime")
-        problems += bad
+        problems.extend(bad)
         if not bad:
             entries.append((line, key, _same(exposure), name, intensity))
     return entries, size
 
 
-def _groups(entries, csv_path: Path, problems: list[str]) -> tuple[list[float], dict]:
+def _groups(entries, csv_path: Path, problems: Problems) -> tuple[list[float], dict]:
     """(every exposure, key -> [(line, exposure, name, intensity)]) with each group's problems noted."""
     exposures = sorted({e for _, _, e, _, _ in entries})
     groups: dict = defaultdict(list)
@@ -203,25 +205,25 @@ def _groups(entries, csv_path: Path, problems: list[str]) -> tuple[list[float], 
     lights = [key for key in groups if key[0] != "white"]
     with_intensity = [key for key in lights if all(i is not None for *_, i in groups[key])]
     if entries and not lights:
-        problems.append(f"{csv_path}: no light images (kind 'light')")
+        problems.add(f"{csv_path}: no light images (kind 'light')")
     if ("white",) not in groups and entries and len(with_intensity) < len(lights):
-        problems.append(f"{csv_path}: no white-board images (kind 'white'), and not every light has an intensity")
+        problems.add(f"{csv_path}: no white-board images (kind 'white'), and not every light has an intensity")
     if 0 < len(with_intensity) < len(lights):
-        problems.append(f"{csv_path}: {len(with_intensity)} of {len(lights)} lights have an intensity: give every "
+        problems.add(f"{csv_path}: {len(with_intensity)} of {len(lights)} lights have an intensity: give every "
                         "light one, or none")
     for key, images in groups.items():
         seen: dict = {}
         for line, exposure, _, _ in images:
             if exposure in seen:
-                problems.append(f"{csv_path}:{line}: {_describe(key)} has a second image for exposure {exposure:g} s "
+                problems.add(f"{csv_path}:{line}: {_describe(key)} has a second image for exposure {exposure:g} s "
                                 f"(first on line {seen[exposure]})")
             seen.setdefault(exposure, line)
         lacking = [e for e in exposures if e not in seen]
         if lacking:
-            problems.append(f"{csv_path}:{images[0][0]}: {_describe(key)} has no image for exposure "
+            problems.add(f"{csv_path}:{images[0][0]}: {_describe(key)} has no image for exposure "
                             f"{', '.join(f'{e:g}' for e in lacking)} s")
         if len({i for *_, i in images}) > 1:
-            problems.append(f"{csv_path}:{images[0][0]}: {_describe(key)} has rows with different intensities")
+            problems.add(f"{csv_path}:{images[0][0]}: {_describe(key)} has rows with different intensities")
     return exposures, groups
 
 
@@ -234,13 +236,13 @@ def write_manifest(csv_path: str | os.PathLike, out: str | os.PathLike, *, respo
     of the camera. Returns `out`; raises `CaptureError` with one line per problem (module docstring).
     """
     csv_path, out = Path(csv_path), Path(out)
-    problems = _check_options(response, white_reflectance, view)
-    rows, _ = _read_csv(csv_path, problems)
+    problems = Problems(error=CaptureError)
+    _check_options(response, white_reflectance, view, problems)
+    rows = _read_csv(csv_path, problems)
     base = csv_path.parent
     entries, size = _rows(rows, base, csv_path, problems)
     exposures, groups = _groups(entries, csv_path, problems)
-    if problems:
-        raise CaptureError(problems)
+    problems.check()
 
     def ordered(images):  # one path per exposure, by exposure, relative to the manifest
         by_exposure = {e: name for _, e, name, _ in images}
