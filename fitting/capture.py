@@ -41,8 +41,9 @@ CAPTURE_FORMAT = "jaxrender-capture"
 CAPTURE_VERSION = 1
 MAX_IMAGE_PROBLEMS = MAX_PROBLEMS  # the problems reported before a validation stops
 UNIT_TOLERANCE = 1e-3  # a light's `direction` may differ from unit length by this much (it is normalised)
+# other keys are ignored, as version 1 always did (`fitting synth` records its settings under `synth`)
 MANIFEST_FIELDS = ("format", "version", "size", "response", "exposures_s", "view", "white", "lights", "mask",
-                   "saturation", "source", "synth", "notes")  # source, synth, notes: free-form, for people
+                   "saturation")
 RESPONSES = ("linear", "srgb")
 _CHECK_BATCH = 256  # images checked per round of the thread pool (a huge capture is never queued at once)
 
@@ -251,7 +252,6 @@ def _images(f: Fields, key: str, n_exposures: int | None) -> list[str] | None:
 def _white(f: Fields, n_exposures: int | None) -> tuple[np.ndarray | None, list[str] | None]:
     if not f.valid:
         return None, None
-    f.known(("reflectance", "images"))
     reflectance = f.raw("reflectance")  # (noted when missing)
     if reflectance is not None and not ((is_number(reflectance) and reflectance > 0) or (
             isinstance(reflectance, list) and len(reflectance) == 3
@@ -283,7 +283,6 @@ def _lights(doc: Fields, n_exposures: int | None, root: Path, images: "_ImageChe
             if not f.valid:
                 f.problem(None, "expected an object")
                 continue
-            f.known(("theta_deg", "phi_deg", "direction", "intensity", "images"))
             d = _direction(f)
             if d is not None:
                 dirs[i] = d
@@ -383,7 +382,7 @@ def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, h
                  workers: int = 4) -> Capture:
     """Load and validate a capture directory; raise `CaptureError` listing every problem.
 
-    Checked: capture.json (present, JSON, format "jaxrender-capture", version 1, no unknown field),
+    Checked: capture.json (present, JSON, format "jaxrender-capture", version 1; other keys ignored),
     every field and its type (`size`, `response`, `exposures_s`, `view`, `white` (optional when every
     light carries an `intensity`), `lights` (each: `theta_deg`/`phi_deg` or a unit `direction`
     strictly above the horizon, optional `intensity`, one image per exposure), `mask`,
@@ -395,7 +394,6 @@ def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, h
     root = Path(capture_dir)
     manifest_path = root / "capture.json"
     doc = Fields.document(_read_manifest(root), manifest_path, error=CaptureError)
-    doc.known(MANIFEST_FIELDS)
     if doc.raw("format", default=None) != CAPTURE_FORMAT:
         doc.problem("format", f"{doc.raw('format', default=None)!r} is not {CAPTURE_FORMAT!r}")
     if doc.raw("version", default=None) != CAPTURE_VERSION:
@@ -407,7 +405,6 @@ def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, h
         doc.problem("response", f"{response!r} is not 'linear' or 'srgb'")
     exposures = _exposures(doc)
     view_fields = doc.section("view")
-    view_fields.known(("theta_deg", "phi_deg", "direction"))
     view = _direction(view_fields) if view_fields.valid else None
     white_fields = doc.section("white", required=False)
     reflectance, white_names = _white(white_fields, None if exposures is None else len(exposures))
