@@ -30,21 +30,23 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxrender.io import complete_level, output_lock, remove_temporaries, write_btf, write_btf_previews
+from jaxrender.io import InputError, complete_level, output_lock, remove_temporaries, write_btf, write_btf_previews
 
 from .checkpoint import Checkpoint, fingerprint
 from .hdr import ObservationCounts, Observations
 from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, SOLVERS, TexelFit, default_tolerances, fit_texels
 from .pyramid import pyramid_channels
 
-__all__ = ["fit_observations", "fit_maps", "ChunkPlan", "plan_chunks", "fit_chunk", "run_chunks", "fit_in_process",
-           "assemble_maps", "level0_channels", "write_fit", "begin_output", "check_settings", "progress_bar",
-           "DEFAULT_CHUNK", "TILE", "PARTIAL"]
+__all__ = ["fit_observations", "fit_maps", "ChunkPlan", "plan_chunks", "read_chunk", "read_texels", "fit_chunk",
+           "empty_fit", "run_chunks", "fit_in_process", "assemble_maps", "observation_summary", "level0_channels",
+           "write_fit", "begin_output", "check_settings", "progress_bar", "DEFAULT_CHUNK", "TILE", "PARTIAL",
+           "MIN_VALID"]
 
 DEFAULT_CHUNK = 4096
 # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
 TILE = 32
 PARTIAL = ".partial"
+MIN_VALID = 4  # lights a texel needs for a determined fit (4 nonlinear + 2 linear parameters per channel)
 
 
 def _layout(chunk: int, n_devices: int) -> tuple[int, int]:
@@ -79,58 +81,109 @@ def _tile_fit(tile: int, model: str, solver: str, max_steps: int):
 
 
 def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_steps) -> TexelFit:
-    """Fit `n_devices * per_device` texels (already padded) over the local devices; flat numpy leaves."""
+    """Fit `n_devices * per_device` texels (already padded) over the local devices; flat numpy leaves.
+
+    Float32 observations are fitted by a float32 program even where a notebook or test switched on
+    x64 (optimistix's damping constants would otherwise turn into float64 and its structure check fails)."""
     devices = jax.local_devices()
     fn = _tile_fit(tile, model, solver, max_steps)
     per_device = ratio.shape[0] // len(devices)
+    dtype = np.asarray(ratio).dtype
     outs = []
-    for d, dev in enumerate(devices):   # dispatched asynchronously: the devices run at once
-        share = slice(d * per_device, (d + 1) * per_device)
-        place = jax.sharding.SingleDeviceSharding(dev)
-        r = jax.device_put(ratio[share].reshape((-1, tile) + ratio.shape[1:]), place)
-        w = jax.device_put(weight[share].reshape((-1, tile) + weight.shape[1:]), place)
-        dirs, view = jax.device_put(np.asarray(light_dirs), place), jax.device_put(np.asarray(view_dir), place)
-        outs.append(fn(r, w, dirs, view))
+    with jax.enable_x64(dtype == np.float64):
+        for d, dev in enumerate(devices):   # dispatched asynchronously: the devices run at once
+            share = slice(d * per_device, (d + 1) * per_device)
+            place = jax.sharding.SingleDeviceSharding(dev)
+            r = jax.device_put(ratio[share].reshape((-1, tile) + ratio.shape[1:]), place)
+            w = jax.device_put(weight[share].reshape((-1, tile) + weight.shape[1:]), place)
+            dirs = jax.device_put(np.asarray(light_dirs, dtype), place)
+            view = jax.device_put(np.asarray(view_dir, dtype), place)
+            outs.append(fn(r, w, dirs, view))
     return jax.tree.map(lambda *shares: np.concatenate([np.asarray(x) for x in shares]), *outs)
 
 
 @dataclasses.dataclass(frozen=True)
 class ChunkPlan:
-    """The work units of a fit of `size` texels (flat row-major order): chunk i is texels
-    `starts[i] .. starts[i] + counts[i] - 1`, fitted padded to `padded` texels in tiles of `tile`.
+    """The work units of a fit of `size` texels: the texels to fit, `texels` (flat row-major
+    indices, ascending: every texel, or a mask's), taken `chunk` at a time; chunk i is
+    `texels[starts[i] : starts[i] + counts[i]]`, fitted padded to `padded` texels in tiles of `tile`.
 
     Every chunk has the same padded shape (one compilation), the last one padded with its last
     texel: the same units whether the observations are in memory or in a store, fitted here or on
     a Dask worker, so a texel always meets the same compiled program."""
 
     size: tuple[int, int]
+    texels: np.ndarray = dataclasses.field(repr=False)
     starts: tuple[int, ...]
     counts: tuple[int, ...]
     tile: int
     padded: int
 
+    def chunk_texels(self, index: int) -> np.ndarray:
+        return self.texels[self.starts[index]:self.starts[index] + self.counts[index]]
 
-def plan_chunks(size: tuple[int, int], chunk: int) -> ChunkPlan:
-    """The chunks of `size` texels for this process's local devices."""
+    @property
+    def n_fitted(self) -> int:
+        return int(self.texels.size)
+
+
+def plan_chunks(size: tuple[int, int], chunk: int, mask: np.ndarray | None = None) -> ChunkPlan:
+    """The chunks of the texels of `size` inside `mask` (`H W` bool; None: all) for this process's
+    local devices."""
     total = size[0] * size[1]
-    tile, per_device = _layout(min(chunk, total), jax.local_device_count())
-    starts = tuple(range(0, total, chunk))
-    return ChunkPlan(tuple(size), starts, tuple(min(chunk, total - s) for s in starts), tile,
+    texels = np.arange(total) if mask is None else np.flatnonzero(np.asarray(mask, bool).reshape(-1))
+    n = max(int(texels.size), 1)
+    tile, per_device = _layout(min(chunk, n), jax.local_device_count())
+    starts = tuple(range(0, texels.size, chunk))
+    return ChunkPlan(tuple(size), texels, starts, tuple(min(chunk, texels.size - s) for s in starts), tile,
                      per_device * jax.local_device_count())
 
 
-def fit_chunk(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], plan: ChunkPlan, index: int, light_dirs,
-              view_dir, *, model: str, solver: str, max_steps: int) -> TexelFit:
-    """Fit chunk `index` of `plan`: `read(start, count)` gives its (ratio `count L 3`, weight
-    `count L`); a `TexelFit` of flat numpy leaves (`count` texels)."""
-    start, count = plan.starts[index], plan.counts[index]
-    ratio, weight = read(start, count)
+def read_texels(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], texels: np.ndarray,
+                window: int) -> tuple[np.ndarray, np.ndarray]:
+    """(ratio, weight) of the ascending flat indices `texels` through `read(start, count)` of
+    contiguous ranges, at most `window` texels read at a time (a sparse mask never reads a whole
+    image at once)."""
+    if texels[-1] - texels[0] + 1 == texels.size:
+        return read(int(texels[0]), int(texels.size))
+    ratios, weights, i = [], [], 0
+    while i < texels.size:
+        start = int(texels[i])
+        j = int(np.searchsorted(texels, start + window))
+        ratio, weight = read(start, int(texels[j - 1]) - start + 1)
+        ratios.append(ratio[texels[i:j] - start])
+        weights.append(weight[texels[i:j] - start])
+        i = j
+    return np.concatenate(ratios), np.concatenate(weights)
+
+
+def read_chunk(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], plan: ChunkPlan,
+               index: int) -> tuple[np.ndarray, np.ndarray]:
+    """(ratio `n L 3`, weight `n L`) of chunk `index`'s texels; `read(start, count)` gives those of a
+    contiguous range of texels."""
+    return read_texels(read, plan.chunk_texels(index), window=max(plan.padded, 1))
+
+
+def fit_chunk(ratio: np.ndarray, weight: np.ndarray, plan: ChunkPlan, index: int, light_dirs, view_dir, *,
+              model: str, solver: str, max_steps: int) -> TexelFit:
+    """Fit chunk `index` of `plan` from its observations (`read_chunk`); a `TexelFit` of flat numpy
+    leaves (the chunk's texels)."""
+    count = plan.counts[index]
     if count != plan.padded:
         idx = np.minimum(np.arange(plan.padded), count - 1)  # pad with the last texel
         ratio, weight = ratio[idx], weight[idx]
     out = _chunk_fit(ratio, weight, light_dirs, view_dir, tile=plan.tile, model=model, solver=solver,
                      max_steps=max_steps)
     return jax.tree.map(lambda v: v[:count], out)
+
+
+def empty_fit(n: int) -> TexelFit:
+    """The fit of `n` texels outside a capture's mask: nothing reflected (rho 0), normal +z."""
+    zeros = np.zeros(n, np.float32)
+    return TexelFit(rho_d=np.zeros((n, 3), np.float32), rho_s=np.zeros((n, 3), np.float32),
+                    normal=np.tile(np.float32([0.0, 0.0, 1.0]), (n, 1)), sigma_x=zeros + np.float32(0.1),
+                    sigma_y=zeros + np.float32(0.1), residual=zeros, cost=zeros, converged=np.zeros(n, bool),
+                    num_steps=np.zeros(n, np.int32), n_valid=np.zeros(n, np.int32))
 
 
 def check_settings(solver: str, chunk: int, max_steps: int) -> None:
@@ -148,9 +201,18 @@ def progress_bar(total: int, progress: bool | None):
                 smoothing=0.1)
 
 
-def assemble_maps(results: list[TexelFit], size: tuple[int, int]) -> TexelFit:
-    """Per-chunk flat fits (in texel order) -> one `TexelFit` of `H W ...` maps."""
-    return jax.tree.map(lambda *chunks: np.concatenate(chunks).reshape(tuple(size) + chunks[0].shape[1:]), *results)
+def assemble_maps(results: list[TexelFit], plan: ChunkPlan) -> TexelFit:
+    """Per-chunk flat fits (in `plan.texels` order) -> one `TexelFit` of `H W ...` maps (`empty_fit`
+    outside the mask)."""
+    total = plan.size[0] * plan.size[1]
+
+    def place(empty, *chunks):
+        out = np.array(empty, dtype=chunks[0].dtype) if chunks else np.asarray(empty)
+        if chunks:
+            out[plan.texels] = np.concatenate(chunks)
+        return out.reshape(tuple(plan.size) + out.shape[1:])
+
+    return jax.tree.map(place, empty_fit(total), *results)
 
 
 def run_chunks(plan: ChunkPlan, checkpoint: Checkpoint | None,
@@ -160,8 +222,8 @@ def run_chunks(plan: ChunkPlan, checkpoint: Checkpoint | None,
     `fit_todo(indices)`, which yields (index, fit) as each is done (and saved); `H W` maps."""
     results = [checkpoint.load(i, count) if checkpoint is not None else None for i, count in enumerate(plan.counts)]
     todo = [i for i, r in enumerate(results) if r is None]
-    bar = progress_bar(sum(plan.counts), progress)
-    bar.update(sum(plan.counts) - sum(plan.counts[i] for i in todo))
+    bar = progress_bar(plan.n_fitted, progress)
+    bar.update(plan.n_fitted - sum(plan.counts[i] for i in todo))
     try:
         for i, fit in fit_todo(todo):
             results[i] = fit
@@ -170,7 +232,7 @@ def run_chunks(plan: ChunkPlan, checkpoint: Checkpoint | None,
                 on_chunk(i)
     finally:
         bar.close()
-    return assemble_maps(results, plan.size)
+    return assemble_maps(results, plan)
 
 
 def fit_in_process(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], plan: ChunkPlan,
@@ -181,7 +243,7 @@ def fit_in_process(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], pl
 
     def fit_todo(todo: list[int]):
         def load(i):
-            return read(plan.starts[i], plan.counts[i])
+            return read_chunk(read, plan, i)
 
         reader = concurrent.futures.ThreadPoolExecutor(max_workers=1) if prefetch and todo else None
         try:
@@ -190,8 +252,8 @@ def fit_in_process(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], pl
                 data = future.result() if reader is not None else load(i)
                 if reader is not None and k + 1 < len(todo):
                     future = reader.submit(load, todo[k + 1])
-                fit = fit_chunk(lambda s, c, data=data: data, plan, i, light_dirs, view_dir, model=model,
-                                solver=solver, max_steps=max_steps)
+                fit = fit_chunk(*data, plan, i, light_dirs, view_dir, model=model, solver=solver,
+                                max_steps=max_steps)
                 if checkpoint is not None:
                     checkpoint.save(i, fit)
                 yield i, fit
@@ -216,18 +278,45 @@ def fit_maps(obs: Observations, *, solver: str = DEFAULT_SOLVER, chunk: int = DE
     ratio = np.asarray(obs.ratio).reshape(h * w, obs.n_lights, 3)
     weight = np.asarray(obs.weight).reshape(h * w, obs.n_lights)
     settings = {"solver": solver, "chunk": chunk, "max_steps": max_steps, "model": model, "dtype": str(ratio.dtype)}
+    mask = None if obs.mask is None else np.asarray(obs.mask, bool)
     checkpoint = None
-    if partial_dir is not None:  # the inputs' identity: directions, and the first light of every texel
+    if partial_dir is not None:  # the inputs' identity: directions, the first light of every texel, the mask
         checkpoint = Checkpoint(partial_dir).prepare(fingerprint(
-            settings, np.asarray(obs.light_dirs), np.asarray(obs.view_dir), np.asarray(ratio[:, :1]), str(ratio.shape)))
-    plan = plan_chunks((h, w), chunk)
+            settings, np.asarray(obs.light_dirs), np.asarray(obs.view_dir), np.asarray(ratio[:, :1]), str(ratio.shape),
+            np.ones((h, w), bool) if mask is None else mask))
+    plan = plan_chunks((h, w), chunk, mask)
     fit_todo = fit_in_process(lambda s, c: (ratio[s:s + c], weight[s:s + c]), plan, checkpoint, obs.light_dirs,
                               obs.view_dir, solver=solver, max_steps=max_steps, model=model)
     return run_chunks(plan, checkpoint, fit_todo, progress=progress, on_chunk=on_chunk)
 
 
-def level0_channels(maps: TexelFit, counts: ObservationCounts) -> dict[str, np.ndarray]:
-    """BTF level-0 channels (design.md names) of `fit_maps` output and the observation counts."""
+def observation_summary(counts: ObservationCounts, mask: np.ndarray | None, source) -> dict:
+    """Texels with too few valid observations, counted (inside the mask); `InputError` naming the
+    likely cause when most texels have none (a saturated or dark white board, a wrong exposure or
+    response): a fit of nothing must not look like a BTF."""
+    inside = np.ones(np.shape(counts.n_valid), bool) if mask is None else np.asarray(mask, bool)
+    n_valid = np.asarray(counts.n_valid)[inside]
+    n_texels = int(n_valid.size)
+    none, few = int(np.sum(n_valid == 0)), int(np.sum(n_valid < MIN_VALID))
+    summary = {"texels": n_texels, "texels_without_observations": none,
+               f"texels_with_fewer_than_{MIN_VALID}_observations": few}
+    if n_texels and none > 0.5 * n_texels:
+        saturated = int(np.asarray(counts.n_saturated)[inside].sum())
+        dark = int(np.asarray(counts.n_dark)[inside].sum())
+        if saturated >= dark and saturated > 0:
+            cause = "most observations are saturated (exposures too long, or an EXR capture clipped below its values?)"
+        elif dark > 0:
+            cause = "most observations are dark (exposures too short, or a wrong response?)"
+        else:
+            cause = ("the white board is saturated, dark or zero at these texels (is its exposure bracket right; "
+                     "for EXR radiance give no saturation level below the board's values)")
+        raise InputError(source, f"{none} of {n_texels} texels have no valid observation: {cause}")
+    return summary
+
+
+def level0_channels(maps: TexelFit, counts: ObservationCounts, mask: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """BTF level-0 channels (design.md names, and `mask`: 1 for fitted texels) of `fit_maps` output
+    and the observation counts."""
     c: dict[str, np.ndarray] = {}
     for i, ch in enumerate("RGB"):
         c[f"rho_d.{ch}"] = maps.rho_d[..., i]
@@ -238,6 +327,7 @@ def level0_channels(maps: TexelFit, counts: ObservationCounts) -> dict[str, np.n
     c["residual"] = maps.residual
     c["converged"] = np.asarray(maps.converged).astype(np.float32)
     c["n_valid"], c["n_saturated"], c["n_dark"] = counts.n_valid, counts.n_saturated, counts.n_dark
+    c["mask"] = np.ones(np.shape(maps.sigma_x), np.float32) if mask is None else mask
     return {k: np.asarray(v, np.float32) for k, v in c.items()}
 
 
@@ -251,17 +341,19 @@ def begin_output(btf_dir: Path) -> None:
 
 def write_fit(btf_dir: Path, maps: TexelFit, counts: ObservationCounts, *, solver: str, chunk: int, max_steps: int,
               model: str, pyramid: bool, seconds: float, cpu_seconds: float | None = None,
-              meta: dict | None = None) -> Path:
+              meta: dict | None = None, mask: np.ndarray | None = None) -> Path:
     """Previews of level 0, then level 0 and the EM pyramid of fitted maps with `btf.json` last (it
     appears only once every level is written); removes `.partial/` and any temporaries."""
-    level0 = level0_channels(maps, counts)
+    level0 = level0_channels(maps, counts, mask)
+    inside = np.ones(np.shape(maps.sigma_x), bool) if mask is None else np.asarray(mask, bool)
     rtol, atol = default_tolerances(np.float32)  # the fit always sees float32 observations
     info = {"fit": {"solver": solver, "method": "levenberg-marquardt, variable projection of rho_d, rho_s",
                     "chunk": chunk, "max_steps": max_steps, "rtol": rtol, "atol": atol,
                     "devices": jax.local_device_count(),
-                    "converged_fraction": float(np.mean(maps.converged)),
-                    "median_residual": float(np.median(maps.residual)),
-                    "median_steps": float(np.median(maps.num_steps)), "seconds": round(seconds, 3)}}
+                    "converged_fraction": float(np.mean(maps.converged[inside])) if inside.any() else 0.0,
+                    "median_residual": float(np.median(maps.residual[inside])) if inside.any() else 0.0,
+                    "median_steps": float(np.median(maps.num_steps[inside])) if inside.any() else 0.0,
+                    "seconds": round(seconds, 3), "observations": observation_summary(counts, mask, btf_dir)}}
     if cpu_seconds is not None:  # this process's CPU time (robust to a shared machine's load)
         info["fit"]["cpu_seconds"] = round(cpu_seconds, 3)
     info.update(meta or {})
@@ -289,6 +381,8 @@ def fit_observations(obs: Observations, btf_dir: str | os.PathLike, *, solver: s
     btf_dir = Path(btf_dir)
     if np.asarray(obs.ratio).dtype != np.float32:
         raise ValueError("fit_observations fits float32 observations")
+    mask = None if obs.mask is None else np.asarray(obs.mask, bool)
+    observation_summary(obs.counts, mask, btf_dir)  # before any work: a fit of nothing is an error
     with output_lock(btf_dir):
         begin_output(btf_dir)
         t0, c0 = time.perf_counter(), time.process_time()
@@ -296,4 +390,4 @@ def fit_observations(obs: Observations, btf_dir: str | os.PathLike, *, solver: s
                         partial_dir=btf_dir / PARTIAL, progress=progress)
         return write_fit(btf_dir, maps, obs.counts, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
                          pyramid=pyramid, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0,
-                         meta=dict(meta or {}))
+                         meta=dict(meta or {}), mask=mask)

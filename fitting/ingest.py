@@ -33,7 +33,7 @@ from jaxrender.io import InputError, atomic_path, output_lock, remove_temporarie
 
 from .capture import MAX_IMAGE_PROBLEMS, Capture, CaptureError, load_capture
 from .checkpoint import fingerprint
-from .hdr import observe
+from .hdr import observe, thresholds
 from .store import (
     DARK,
     DEFAULT_STORE_DTYPE,
@@ -82,8 +82,9 @@ def _settings(dtype: str, tile: int, block: int) -> dict:
 def _capture_fingerprint(capture: Capture, settings: dict) -> str:
     """Manifest text, every image's size and modification time, and the settings of the store (not the
     paths, which the manifest names: the same capture reached by another path has the same fingerprint)."""
+    masks = (capture.mask,) if capture.mask is not None else ()
     stats = (f"{path.name}:{path.stat().st_size}:{path.stat().st_mtime_ns}"
-             for path in (*capture.white_images, *(p for images in capture.light_images for p in images)))
+             for path in (*capture.white_images, *(p for images in capture.light_images for p in images), *masks))
     return fingerprint(settings, (capture.root / "capture.json").read_bytes(), *stats)
 
 
@@ -132,6 +133,7 @@ def _create(store_dir: Path, capture: Capture, *, dtype: str, tile: int, block: 
     (store_dir / PROGRESS).mkdir(parents=True)
     t, n = capture.size[0] * capture.size[1], capture.n_lights
     create_arrays(store_dir, size=capture.size, n_lights=n, tile=min(tile, t), light_block=min(block, n), dtype=dtype)
+    _write_mask(store_dir, capture)
     with atomic_path(store_dir / PROGRESS / "config.json") as tmp:  # last: the arrays exist
         tmp.write_text(json.dumps({"fingerprint": fingerprint}))
 
@@ -151,6 +153,13 @@ def _read_block(capture: Capture, pool, lights: range, block: int) -> np.ndarray
     codes = np.zeros((block, len(capture.exposures_s), h, w, 3), np.float32)
     codes[:len(lights)] = np.stack([c for c, _ in results]).reshape(len(lights), -1, h, w, 3)
     return codes
+
+
+def _write_mask(store_dir: Path, capture: Capture) -> None:
+    """The capture's mask (1 for the texels to fit) into the store's `mask` array."""
+    import zarr
+
+    zarr.open_group(str(store_dir), mode="r+")["mask"][:] = capture.read_mask().reshape(-1).astype(np.uint8)
 
 
 def _write_counts(store_dir: Path) -> None:
@@ -222,6 +231,9 @@ def _ingest(capture_dir, store_dir: Path, *, dtype, memory_gb, tile, light_block
         problems = [line for _, lines in white_results for line in lines]
         if problems:  # still nothing written
             raise CaptureError(problems)
+        mask_problems = [] if capture.mask is None else capture.read_checked(capture.mask)[1]
+        if mask_problems:
+            raise CaptureError(mask_problems)
         state = _start(store_dir, fingerprint_)
         _remove_leftovers(store_dir)
         if state == "done":   # complete: rewrite what the file listing shows damaged, if anything
@@ -232,9 +244,9 @@ def _ingest(capture_dir, store_dir: Path, *, dtype, memory_gb, tile, light_block
             return store_dir
         if state == "new":
             _create(store_dir, capture, dtype=dtype, tile=tile, block=block, fingerprint=fingerprint_)
-        white = np.stack([c for c, _ in white_results])
+        white = np.stack([c for c, _ in white_results]) if capture.has_white else None
         exposures = np.asarray(capture.exposures_s, np.float32)
-        reflectance = np.asarray(capture.white_reflectance, np.float32)
+        reflectance = np.asarray(capture.white_reflectance, np.float32) if capture.has_white else None
         blocks = [range(s, min(s + block, capture.n_lights)) for s in range(0, capture.n_lights, block)]
         todo = [i for i in range(len(blocks)) if not (store_dir / PROGRESS / f"block_{i:06d}").exists()]
         _store_blocks(store_dir, capture, blocks, todo, white, exposures, reflectance, pool, prefetch,
@@ -243,7 +255,10 @@ def _ingest(capture_dir, store_dir: Path, *, dtype, memory_gb, tile, light_block
                 "light_dirs": capture.light_dirs.tolist(), "view_dir": capture.view_dir.tolist(),
                 "light_angles": np.asarray(capture.light_angles).tolist(), "view_angles": list(capture.view_angles),
                 "exposures_s": list(capture.exposures_s), "response": capture.response,
-                "white_reflectance": capture.white_reflectance.tolist(), "capture": str(capture.root),
+                "encoding": capture.encoding, "saturation": capture.saturation,
+                "white_reflectance": None if not capture.has_white else capture.white_reflectance.tolist(),
+                "light_intensities": None if capture.light_intensities is None
+                else capture.light_intensities.tolist(), "mask": capture.mask is not None, "capture": str(capture.root),
                 "fingerprint": fingerprint_, "ingest_seconds": round(time.perf_counter() - t0, 3)}
         _finish(store_dir, capture, tile=tile, info=info)
         return store_dir
@@ -266,8 +281,7 @@ def repair_store(store: ObservationStore, damage: list[ChunkDamage], *, progress
     fingerprint differs). Holds the store's lock while it writes."""
     from tqdm.auto import tqdm
 
-    blocks = sorted({d.block for d in damage if d.block is not None})
-    if not blocks:   # only counts: they come from the flags
+    if all(d.array == "counts" for d in damage):   # only counts: they come from the flags
         with output_lock(store.path):
             _write_counts(store.path)
         log.warning("%s: wrote the counts again from the flags (damaged: %s)", store.path, damage[0].describe())
@@ -296,11 +310,15 @@ def repair_store(store: ObservationStore, damage: list[ChunkDamage], *, progress
 
 def _repair(store: ObservationStore, capture: Capture, damage: list[ChunkDamage], white_results, pool, prefetch, *,
             tqdm, progress) -> None:
+    """Write again the mask (when damaged), the light blocks of damaged chunks, then the counts."""
+    if any(d.array == "mask" for d in damage):
+        _write_mask(store.path, capture)
     block = int(store.info["light_block"])
     blocks = [range(s, min(s + block, capture.n_lights)) for s in range(0, capture.n_lights, block)]
     todo = sorted({d.block for d in damage if d.block is not None})
-    _store_blocks(store.path, capture, blocks, todo, np.stack([c for c, _ in white_results]),
-                  np.asarray(capture.exposures_s, np.float32), np.asarray(capture.white_reflectance, np.float32),
+    white = np.stack([c for c, _ in white_results]) if capture.has_white else None
+    reflectance = np.asarray(capture.white_reflectance, np.float32) if capture.has_white else None
+    _store_blocks(store.path, capture, blocks, todo, white, np.asarray(capture.exposures_s, np.float32), reflectance,
                   pool, prefetch, dtype=store.dtype, block=block, progress=progress, tqdm=tqdm, on_block=None,
                   markers=False)
     _write_counts(store.path)
@@ -317,6 +335,7 @@ def _store_blocks(store_dir, capture, blocks, todo, white, exposures, reflectanc
     group = zarr.open_group(str(store_dir), mode="r+")
     ratio_arr, flags_arr = group["ratio"], group["flags"]
     t = capture.size[0] * capture.size[1]
+    mask = capture.read_mask()   # what the store's `mask` holds, read from the capture: never a damaged chunk
     done = sum(len(b) for i, b in enumerate(blocks) if i not in set(todo))
     bar = tqdm(total=capture.n_lights, initial=done, unit="light", desc="ingest",
                disable=None if progress is None else not progress)
@@ -325,9 +344,13 @@ def _store_blocks(store_dir, capture, blocks, todo, white, exposures, reflectanc
         codes = future.result()
         if k + 1 < len(todo):  # read the next block while this one merges and is written
             future = prefetch.submit(_read_block, capture, pool, blocks[todo[k + 1]], block)
-        ratio, valid, saturated, dark = observe(codes, exposures, white, reflectance, response=capture.response)
-        del codes
         n = len(blocks[i])
+        intensities = np.ones((block, 3), np.float32)
+        intensities[:n] = capture.intensities()[blocks[i].start:blocks[i].stop]
+        ratio, valid, saturated, dark = observe(codes, exposures, white, reflectance, response=capture.merge_response,
+                                                intensities=intensities, mask=mask,
+                                                levels=thresholds(capture.encoding, capture.saturation))
+        del codes
         lights = slice(blocks[i].start, blocks[i].stop)
         r = np.asarray(ratio).reshape(t, block, 3)[:, :n]
         if dtype == "float16":

@@ -16,16 +16,20 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 
 from jaxrender.brdf import BTFTexel
-from jaxrender.io import InputError, output_lock, read_btf, write_btf_levels
+from jaxrender.io import MASK_CHANNEL, InputError, output_lock, read_btf, write_btf_levels
+from jaxrender.textures import downsample2
 
 from .em import DEFAULT_ITERATIONS, DEFAULT_ORDER, ONE_LOBE_TOLERANCE, TWO_LOBE_GAIN, em_downsample
 
-__all__ = ["build_pyramid", "pyramid_channels", "pyramid_levels", "pyramid_sizes", "banded_downsample", "BAND_TEXELS"]
+__all__ = ["build_pyramid", "pyramid_channels", "pyramid_levels", "pyramid_sizes", "banded_downsample",
+           "masked_average", "BAND_TEXELS"]
 
 BAND_TEXELS = 65536  # output texels per band of a large one-lobe level (16 EM chunks of 4096)
 
@@ -66,15 +70,35 @@ def banded_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations
             jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=0), *infos))
 
 
+@jax.jit
+def masked_average(coarse: BTFTexel, mask: Float[Array, "H W"]) -> tuple[BTFTexel, Float[Array, "h w"]]:
+    """(`coarse` as the average over its children inside `mask` only, the coarse mask).
+
+    Texels outside a capture's mask hold rho = 0, so a coarse texel's rho_d (the children's mean)
+    and its lobes' rho_s (the children's energy / 4) are those of its inside children times the
+    inside fraction f (`downsample2` of the mask, same padding): divided by f they are the inside
+    children's own; the lobes' shape is unchanged (outside children carry no energy)."""
+    frac = downsample2(mask[..., None])[..., 0]
+    scale = jnp.where(frac > 0, 1.0 / jnp.where(frac > 0, frac, 1.0), 0.0)[..., None]
+    scaled = eqx.tree_at(lambda t: (t.rho_d, t.lobe0.rho_s, t.lobe1.rho_s), coarse,
+                         (coarse.rho_d * scale, coarse.lobe0.rho_s * scale, coarse.lobe1.rho_s * scale))
+    return scaled, (frac > 0).astype(mask.dtype)
+
+
 def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = DEFAULT_ORDER,
                    iterations: int = DEFAULT_ITERATIONS, progress: Callable[[int], object] | None = None,
-                   ) -> tuple[list[BTFTexel], list[dict]]:
-    """Levels 1, 2, ... of an `H W` BTFTexel (level 0 not included) and per-level statistics."""
+                   mask: Float[Array, "H W"] | None = None) -> tuple[list[BTFTexel], list[dict]]:
+    """Levels 1, 2, ... of an `H W` BTFTexel (level 0 not included) and per-level statistics; with
+    a `mask` (1 fitted, 0 not) every coarse texel averages its inside children only (`masked_average`)
+    and each level's statistics carry its mask as `mask` (an `h w` array)."""
     count = len(pyramid_sizes(level0.weight.shape, levels=levels))
-    out, infos = [], []
+    out, infos, masks = [], [], []
     current = level0
     for _ in range(1, count):  # a handful of levels: each one is a vmapped kernel call
         current, info = banded_downsample(current, order=order, iterations=iterations)
+        if mask is not None:
+            current, mask = masked_average(current, jnp.asarray(mask, current.rho_d.dtype))
+            masks.append(mask)
         out.append(current)
         infos.append(info)
         if progress is not None:
@@ -85,6 +109,8 @@ def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = 
     stats = [{"size": list(level.weight.shape), "two_lobe_fraction": float(two),
               "max_iterations": int(iterations), "converged_fraction": float(converged)}
              for level, (two, iterations, converged) in zip(out, summary)]
+    for stat, level_mask in zip(stats, masks):
+        stat["mask"] = np.asarray(level_mask, np.float32)
     return out, stats
 
 
@@ -100,12 +126,18 @@ def pyramid_channels(level0: dict[str, np.ndarray], *, levels: int | None = None
                      iterations: int = DEFAULT_ITERATIONS, progress: Callable[[int], object] | None = None,
                      ) -> tuple[list[dict[str, np.ndarray]], dict]:
     """(levels 1, 2, ... as BTF channel dicts, btf.json's `pyramid` entry) of level 0's channels
-    (every lobe channel, as `jaxrender.io.complete_level` gives them). See `build_pyramid`."""
+    (every lobe channel and the mask, as `jaxrender.io.complete_level` gives them): a masked level 0
+    gives masked levels (`masked_average`). See `build_pyramid`."""
     texel = BTFTexel.from_channels(level0)
     if not np.all(np.isfinite(np.asarray(texel.weight))):
         raise ValueError("non-finite weight channel in level 0")
-    coarse, stats = pyramid_levels(texel, levels=levels, order=order, iterations=iterations, progress=progress)
+    mask = level0.get(MASK_CHANNEL)
+    coarse, stats = pyramid_levels(texel, levels=levels, order=order, iterations=iterations, progress=progress,
+                                   mask=None if mask is None or np.all(mask > 0) else mask)
     channels = [{name: np.asarray(v, dtype=np.float32) for name, v in t.to_channels().items()} for t in coarse]
+    for level, stat in zip(channels, stats):
+        if "mask" in stat:
+            level[MASK_CHANNEL] = stat.pop("mask")
     meta = {"pyramid": {"method": "em", "order": order, "iterations": iterations,
                         "one_lobe_tolerance": ONE_LOBE_TOLERANCE, "two_lobe_gain": TWO_LOBE_GAIN,
                         "levels": stats}}

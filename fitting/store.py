@@ -9,6 +9,7 @@ STORE_DIR/zarr.json     zarr v3 group; its attributes record the layout (size, l
 STORE_DIR/ratio/        T x L x 3   float16 (default) or float32: observed reflectance, 0 where invalid
 STORE_DIR/flags/        T x L       uint8: bit 0 valid, bit 1 a channel saturated, bit 2 a channel dark
 STORE_DIR/counts/       T x 3       int32: n_valid, n_saturated, n_dark (written after the last light)
+STORE_DIR/mask/         T           uint8: 1 for the texels to fit (the capture's mask; all 1 without one)
 STORE_DIR/.ingest/      progress of an unfinished ingest (one marker per finished light block)
 STORE_DIR/store.json    written last: format, version, size, lights, view, dtype, chunking, fingerprint
 ```
@@ -49,8 +50,8 @@ VALID, SATURATED, DARK = 1, 2, 4
 MARKER = "store.json"
 COUNTS_TILES = 16   # a chunk of `counts` spans this many tiles
 # what a chunk that is not on disk reads as: never a value the ingest writes
-FILL = {"ratio": float("nan"), "flags": 0xFF, "counts": -1}
-ARRAY_DTYPES = {"flags": "uint8", "counts": "int32"}
+FILL = {"ratio": float("nan"), "flags": 0xFF, "counts": -1, "mask": 0xFF}
+ARRAY_DTYPES = {"flags": "uint8", "counts": "int32", "mask": "uint8"}
 MIN_CHUNK_BYTES = 5   # a chunk file holds at least a compressed frame and its 4-byte checksum
 
 
@@ -82,6 +83,8 @@ def create_arrays(store_dir: Path, *, size: tuple[int, int], n_lights: int, tile
                        fill_value=FILL["flags"], **common)
     group.create_array("counts", shape=(t, 3), chunks=(tile * COUNTS_TILES, 3), dtype="int32",
                        fill_value=FILL["counts"], **common)
+    group.create_array("mask", shape=(t,), chunks=(tile * COUNTS_TILES,), dtype="uint8", fill_value=FILL["mask"],
+                       **common)
     group.attrs["layout"] = {"size": list(size), "n_lights": n_lights, "tile": tile, "light_block": light_block,
                              "dtype": dtype}
 
@@ -164,6 +167,10 @@ class ObservationStore:
     def flags(self, start: int, count: int) -> np.ndarray:
         return self._get("flags", start, count)
 
+    def mask(self) -> np.ndarray:
+        """`H W` bool: the texels to fit."""
+        return self._get("mask", 0, self.n_texels).reshape(self.size) > 0
+
     def counts(self) -> ObservationCounts:
         """`H W` int32 maps n_valid, n_saturated, n_dark."""
         counts = self._get("counts", 0, self.n_texels).reshape(self.size + (3,))
@@ -181,7 +188,7 @@ class ObservationStore:
                             light_dirs=jnp.asarray(self.light_dirs.astype(np.float32)),
                             view_dir=jnp.asarray(self.view_dir.astype(np.float32)),
                             n_valid=jnp.asarray(counts.n_valid), n_saturated=jnp.asarray(counts.n_saturated),
-                            n_dark=jnp.asarray(counts.n_dark))
+                            n_dark=jnp.asarray(counts.n_dark), mask=jnp.asarray(self.mask()))
 
     # --- integrity -------------------------------------------------------------------------------------------
 
@@ -195,7 +202,7 @@ class ObservationStore:
         array = self._arrays[name]
         tile = array.chunks[0]
         texels = (coords[0] * tile, min((coords[0] + 1) * tile, array.shape[0]))
-        if name == "counts":
+        if name in ("counts", "mask"):   # per texel: no light block
             return ChunkDamage(name, array.metadata.encode_chunk_key(coords), problem, texels, None, None)
         block = array.chunks[1]
         lights = (coords[1] * block, min((coords[1] + 1) * block, array.shape[1]))
@@ -228,7 +235,7 @@ class ObservationStore:
                 raise
             raise StoreDamaged(self.path, damage) from error
         bad = np.isnan(data) if name == "ratio" else data == FILL[name]
-        if name != "flags":   # per texel and light (ratio) or per texel (counts)
+        if name in ("ratio", "counts"):   # per texel and light (ratio's RGB) or per texel (counts' three)
             bad = np.any(bad, axis=-1)
         if not np.any(bad):
             return data
@@ -305,7 +312,8 @@ def _check_layout(store: ObservationStore) -> None:
     differs("tile", tile, ratio.chunks[0], "chunk of texels")
     differs("light_block", block, ratio.chunks[1], "chunk of lights")
     differs("dtype", dtype, str(ratio.dtype), "ratio dtype")
-    for name, array, shape in (("flags", flags, (t, n)), ("counts", counts, (t, 3))):
+    mask = store._arrays["mask"]
+    for name, array, shape in (("flags", flags, (t, n)), ("counts", counts, (t, 3)), ("mask", mask, (t,))):
         if array.shape != shape or str(array.dtype) != ARRAY_DTYPES[name]:
             problems.add(f"{store.path / name}: shape {array.shape} {array.dtype}, expected {shape} "
                          f"{ARRAY_DTYPES[name]} beside ratio {ratio.shape}")

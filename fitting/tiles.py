@@ -43,7 +43,9 @@ from .fit import (
     check_settings,
     fit_chunk,
     fit_in_process,
+    observation_summary,
     plan_chunks,
+    read_chunk,
     run_chunks,
     write_fit,
 )
@@ -71,9 +73,9 @@ def fit_tile(store_dir: str, fingerprint_: str, partial: str, index: int, chunk:
     """Fit tile `index` of a store and write it to the checkpoint `partial` (atomically); a Dask task.
     Returns `index`."""
     store = _worker_store(store_dir, fingerprint_)
-    plan = plan_chunks(store.size, chunk)  # this process's devices
-    fit = fit_chunk(store.read, plan, index, store.light_dirs.astype(np.float32), store.view_dir.astype(np.float32),
-                    model=model, solver=solver, max_steps=max_steps)
+    plan = plan_chunks(store.size, chunk, store.mask())  # this process's devices
+    fit = fit_chunk(*read_chunk(store.read, plan, index), plan, index, store.light_dirs.astype(np.float32),
+                    store.view_dir.astype(np.float32), model=model, solver=solver, max_steps=max_steps)
     Checkpoint(partial).save(index, fit)
     return index
 
@@ -108,7 +110,7 @@ def fit_store_maps(store: ObservationStore, *, partial_dir: str | os.PathLike, s
     check_settings(solver, chunk, max_steps)
     settings = {"solver": solver, "chunk": chunk, "max_steps": max_steps, "model": model, "source": "store"}
     checkpoint = Checkpoint(partial_dir).prepare(fingerprint(settings, store.fingerprint))
-    plan = plan_chunks(store.size, chunk)
+    plan = plan_chunks(store.size, chunk, store.mask())
     if scheduler is None:
         fit_todo = fit_in_process(store.read, plan, checkpoint, store.light_dirs.astype(np.float32),
                                   store.view_dir.astype(np.float32), solver=solver, max_steps=max_steps, model=model,
@@ -141,6 +143,8 @@ def fit_store(store_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, solve
         damage = store.scan()
         if damage:
             repair_store(store, damage, progress=progress)
+        counts, mask = store.counts(), store.mask()
+        observation_summary(counts, mask, store.info.get("capture") or store_dir)  # before any work
         t0, c0 = time.perf_counter(), time.process_time()
         for attempt in range(MAX_REPAIRS + 1):
             try:
@@ -155,9 +159,9 @@ def fit_store(store_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, solve
         info = {"capture": store.info.get("capture"), "store": {"dtype": store.dtype, "fingerprint": store.fingerprint},
                 "scheduler": describe_scheduler(scheduler)}
         info.update(meta or {})
-        return write_fit(btf_dir, maps, store.counts(), solver=solver, chunk=chunk, max_steps=max_steps, model=model,
-                         pyramid=pyramid, seconds=seconds, cpu_seconds=None if scheduler is not None else cpu_seconds,
-                         meta=info)
+        return write_fit(btf_dir, maps, counts, mask=mask, solver=solver, chunk=chunk, max_steps=max_steps,
+                         model=model, pyramid=pyramid, seconds=seconds,
+                         cpu_seconds=None if scheduler is not None else cpu_seconds, meta=info)
 
 
 def fit_capture(source: str | os.PathLike, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_SOLVER,

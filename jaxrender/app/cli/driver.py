@@ -18,6 +18,7 @@ import os
 import sys
 import traceback
 from collections.abc import Sequence
+from types import ModuleType
 
 from jaxrender.errors import (
     EXIT_BUSY,
@@ -67,6 +68,18 @@ def describe_failure(error: BaseException, output: str | None = None) -> tuple[i
                            f"{DEBUG_ENV}=1 for the traceback, and report it)")
 
 
+def command_parser(prog: str, name: str, commands: dict[str, tuple[str, str]]
+                   ) -> tuple[ModuleType, argparse.ArgumentParser]:
+    """The subcommand's module (imported now) and its configured parser (also read by the docs' CLI pages)."""
+    module_path, help_ = commands[name]
+    module = importlib.import_module(module_path)
+    parser = argparse.ArgumentParser(prog=f"{prog} {name}", description=help_)
+    module.configure(parser)
+    parser.add_argument("--debug", action="store_true",
+                        help=f"on failure, print the traceback above the one-line error (also: {DEBUG_ENV}=1)")
+    return module, parser
+
+
 def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
             argv: Sequence[str] | None = None) -> int:
     """`commands` maps a name to (module path, one-line help)."""
@@ -81,12 +94,7 @@ def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
         print(text)
         return 0 if argv else 2
     name = argv[0]
-    module_path, help_ = commands[name]
-    module = importlib.import_module(module_path)
-    parser = argparse.ArgumentParser(prog=f"{prog} {name}", description=help_)
-    module.configure(parser)
-    parser.add_argument("--debug", action="store_true",
-                        help=f"on failure, print the traceback above the one-line error (also: {DEBUG_ENV}=1)")
+    module, parser = command_parser(prog, name, commands)
     args = parser.parse_args(argv[1:])
     try:
         return int(module.run(args) or 0)

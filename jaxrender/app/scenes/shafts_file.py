@@ -34,7 +34,7 @@ RENDER_DEFAULTS = {"shadow_map": 1024, "shadow_bias": 0.002, "table_size": 256, 
 
 
 class ShaftsSceneWarning(UserWarning):
-    """A scene that loads but is physically suspicious (e.g. 8*pi*K > kappa)."""
+    """A scene that loads but is physically suspicious (e.g. `8*pi*K > kappa`)."""
 
 
 def _parallel(a: np.ndarray, b: np.ndarray) -> bool:
