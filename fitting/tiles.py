@@ -69,13 +69,18 @@ def _worker_store(store_dir: str, fingerprint_: str) -> ObservationStore:
 
 
 def fit_tile(store_dir: str, fingerprint_: str, partial: str, index: int, chunk: int, *, solver: str, model: str,
-             max_steps: int) -> int:
+             max_steps: int) -> int | StoreDamaged:
     """Fit tile `index` of a store and write it to the checkpoint `partial` (atomically); a Dask task.
-    Returns `index`."""
+    Returns `index`, or the `StoreDamaged` its read raised (returned, not raised: the driver repairs
+    the store, and Dask neither retries the task nor logs an error)."""
     store = _worker_store(store_dir, fingerprint_)
-    plan = plan_chunks(store.size, chunk, store.mask())  # this process's devices
-    fit = fit_chunk(*read_chunk(store.read, plan, index), plan, index, store.light_dirs.astype(np.float32),
-                    store.view_dir.astype(np.float32), model=model, solver=solver, max_steps=max_steps)
+    try:
+        plan = plan_chunks(store.size, chunk, store.mask())  # this process's devices
+        data = read_chunk(store.read, plan, index)
+    except StoreDamaged as damaged:
+        return damaged
+    fit = fit_chunk(*data, plan, index, store.light_dirs.astype(np.float32), store.view_dir.astype(np.float32),
+                    model=model, solver=solver, max_steps=max_steps)
     Checkpoint(partial).save(index, fit)
     return index
 
@@ -92,6 +97,8 @@ def fit_on_dask(store: ObservationStore, plan: ChunkPlan, checkpoint: Checkpoint
                                  max_steps=max_steps, pure=False, retries=2) for i in todo]
         for future in distributed.as_completed(futures):
             i = future.result()
+            if isinstance(i, StoreDamaged):
+                raise i
             fit = checkpoint.load(i, plan.counts[i])
             if fit is None:
                 raise OSError(f"{checkpoint.path(i)}: a worker's tile is missing or unreadable "
