@@ -1,9 +1,9 @@
 """Faults survived (issue 26): a damaged store never becomes wrong maps, every failure is one line with
 the exit code of its kind, a BTF is complete only when it is, one writer per output.
 
-One small capture (8 x 8 texels, 12 lights; a store of 4 tiles x 3 light blocks) and one reference fit
-(in-process, float32 as `fitting fit` runs it, compiled into a persistent cache that the one
-subprocess here loads). Every fault is made by hand on a copy of the store or the BTF, or injected
+One small capture (8 x 8 texels, 12 lights of random codes; a store of 4 tiles x 3 light blocks) and
+one reference fit (in-process, float32 as `fitting fit` runs it, compiled into a persistent cache
+that the one fitting subprocess here loads). Every fault is made by hand on a copy of the store or the BTF, or injected
 (disk full, read-only, out of memory: an `OSError`/`MemoryError` raised where the write happens; a
 real small tmpfs and a read-only mount were checked by hand, see the issue's report). The command
 lines run in this process through `fitting_main` / `jaxrender_main` (the driver is what is checked);
@@ -21,16 +21,16 @@ import sys
 import textwrap
 from pathlib import Path
 
-import jax
 import numpy as np
 import pytest
+from capture_helpers import write_capture
 from test_store import _env, _fit_mode
 
-from fitting import fit_store, ingest_capture, open_store, synth_capture
+from fitting import fit_store, ingest_capture, open_store
 from fitting.store import FILL, StoreDamaged, create_arrays
 from jaxrender.app.cli.programs import fitting_main, jaxrender_main
 from jaxrender.errors import EXIT_BUSY, EXIT_INPUT, EXIT_INTERNAL, EXIT_MACHINE, InputError, OutputBusy
-from jaxrender.io import LOCK_NAME, atomic_path, output_lock, read_btf, remove_temporaries, write_exr
+from jaxrender.io import LOCK_NAME, atomic_path, output_lock, read_btf, remove_temporaries, write_exr, write_png
 
 SIZE = (8, 8)
 LIGHTS = 12
@@ -46,7 +46,15 @@ def root(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def capture(root):
-    return synth_capture(root / "capture", key=jax.random.key(11), size=SIZE, lights=LIGHTS, progress=False)
+    """Codes drawn at random, written as PNGs (no synthesis to compile: the faults do not need real maps)."""
+    rng = np.random.default_rng(11)
+
+    def image(name):
+        write_png(root / "capture" / name, rng.uniform(0.1, 0.9, SIZE + (3,)).astype(np.float32), srgb=False)
+        return name
+
+    return write_capture(root / "capture", image, size=SIZE, ext="png", lights=LIGHTS, exposures_s=[0.1, 1.0],
+                         angle_step=(6.0, 30.0))
 
 
 @pytest.fixture(scope="module")
