@@ -201,6 +201,31 @@ def test_without_its_capture_a_damaged_store_stops_with_one_line(root, store, ca
     assert not (out / "btf.json").exists()
 
 
+def test_ingest_on_a_complete_store_writes_its_damage_again(root, store, capture):
+    """`fitting ingest` rerun on a complete store whose file listing shows damage rewrites it: the arrays
+    come back equal to the undamaged store's."""
+    import zarr
+
+    bad = _copy(store, root / "reingest")
+    _damage(_chunk(bad, "flags", (1, 2)), "missing")
+    _damage(_chunk(bad, "mask", (0,)), "empty")
+    ingest_capture(capture, bad, tile=TILE, light_block=LIGHT_BLOCK, progress=False)
+    assert open_store(bad).scan() == []
+    for name in ("ratio", "flags", "counts", "mask"):
+        np.testing.assert_array_equal(zarr.open_group(str(bad), mode="r")[name][:],
+                                      zarr.open_group(str(store), mode="r")[name][:], err_msg=name)
+
+
+def test_store_damage_crosses_process_boundaries(store):
+    """A Dask worker returns the damage it found to the driver: `StoreDamaged` pickles with its chunks."""
+    import pickle
+
+    with pytest.raises(StoreDamaged) as info:
+        raise StoreDamaged(store, [open_store(store).chunk_damage("ratio", (1, 2, 0), "missing")])
+    back = pickle.loads(pickle.dumps(info.value))
+    assert type(back) is StoreDamaged and str(back) == str(info.value) and back.damage == info.value.damage
+
+
 FIELDS = [("size", [4, 16], "recorded in"), ("size", [8, 7], "56 texels"), ("size", [16, 16], "256 texels"),
           ("n_lights", 11, "light count"), ("tile", 8, "chunk of texels"), ("light_block", 3, "chunk of lights"),
           ("dtype", "float32", "ratio dtype"), ("light_dirs", [[0, 0, 1]], "1 directions"),
