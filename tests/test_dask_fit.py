@@ -22,6 +22,7 @@ CHUNK = 8  # 8 x 8 texels: 8 tiles, 8 tasks
 def setup(tmp_path_factory):
     root = tmp_path_factory.mktemp("dask")
     capture = synth_capture(root / "capture", key=jax.random.key(11), size=(8, 8), lights=40, progress=False)
+    _add_mask_and_intensities(capture)
     store = ingest_capture(capture, root / "store", dtype="float32", tile=CHUNK, progress=False)
     # One persistent compilation cache for this process and the workers (they inherit the
     # environment): the tile program is compiled once, here, and loaded by every worker.
@@ -50,6 +51,32 @@ def setup(tmp_path_factory):
     cluster.close()
     for name, value in old_env.items():
         os.environ.pop(name) if value is None else os.environ.__setitem__(name, value)
+
+
+MASK = np.ones((8, 8))
+MASK[5:, :3] = 0  # 9 texels not fitted: tiles of the mask's texels, not of the image's
+
+
+def _add_mask_and_intensities(capture):
+    """The measured-capture extensions on the Dask path: a mask and per-light RGB intensities."""
+    import json
+
+    from jaxrender.io import write_png
+
+    write_png(capture / "mask.png", MASK, srgb=False)
+    manifest = json.loads((capture / "capture.json").read_text())
+    manifest["mask"] = "mask.png"
+    for i, light in enumerate(manifest["lights"]):
+        light["intensity"] = [1.0 + 0.01 * i, 1.0, 0.9]
+    (capture / "capture.json").write_text(json.dumps(manifest))
+
+
+def test_mask_texels_are_not_fitted(setup):
+    _, _, ref, _ = setup
+    np.testing.assert_array_equal(ref["mask"], MASK)
+    outside = MASK == 0
+    assert np.all(ref["n_valid"][outside] == 0) and np.all(ref["rho_d.R"][outside] == 0)
+    assert np.all(ref["n_valid"][~outside] > 0) and np.all(ref["converged"][~outside] == 1)
 
 
 def _assert_same(btf_dir, ref):
