@@ -10,6 +10,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import InputError
+from ._images import read_exr
 
 __all__ = ["ImageHeader", "image_header", "IMAGE_SUFFIXES", "SUPPORTED_IMAGES"]
 
@@ -83,8 +84,6 @@ def _jpeg_header(path: Path) -> ImageHeader:
 
 def _exr_header(path: Path) -> ImageHeader:
     import OpenEXR
-
-    from ._images import read_exr
 
     try:
         with OpenEXR.File(str(path), header_only=True) as exr:
