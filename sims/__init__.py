@@ -1,5 +1,5 @@
 """Simulations that feed the renderer: ripple and dune automata, sand dust, fire, cloth (draped
-and moving), footprints in sand."""
+and moving), a costume on a motion-captured skeleton, footprints in sand."""
 
 from ._fields import FIELD_SUFFIXES as FIELD_SUFFIXES
 from ._fields import load_field as load_field
@@ -41,6 +41,7 @@ from .footprints import press_trail as press_trail
 from .footprints import relax_to_repose as relax_to_repose
 from .footprints import repose_excess as repose_excess
 from .footprints import trail_steps as trail_steps
+from .noh_dance import noh_dance as noh_dance
 from .ripples import RippleParams as RippleParams
 from .ripples import dominant_wavelength as dominant_wavelength
 from .ripples import init_ripples as init_ripples
@@ -48,3 +49,9 @@ from .ripples import power_spectrum_along as power_spectrum_along
 from .ripples import ripple_step as ripple_step
 from .ripples import simulate_ripples as simulate_ripples
 from .ripples import spectral_centroid_wavelength as spectral_centroid_wavelength
+from .skeleton import Skeleton as Skeleton
+from .skeleton import SkeletonMotion as SkeletonMotion
+from .skeleton import forward_kinematics as forward_kinematics
+from .skeleton import place_motion as place_motion
+from .skeleton import pose_motion as pose_motion
+from .skeleton import skeleton_from_bvh as skeleton_from_bvh
