@@ -19,6 +19,14 @@ from .cloth import cloth_mesh as cloth_mesh
 from .cloth import drape_cloth as drape_cloth
 from .cloth import drape_garment as drape_garment
 from .cloth import simulate_cloth as simulate_cloth
+from .costume import BodyVolumes as BodyVolumes
+from .costume import Costume as Costume
+from .costume import advance_costume as advance_costume
+from .costume import body_volumes as body_volumes
+from .costume import costume_frames as costume_frames
+from .costume import dress_performer as dress_performer
+from .costume import performer_joints as performer_joints
+from .costume import volume_penetration as volume_penetration
 from .dunes import DuneParams as DuneParams
 from .dunes import dune_step as dune_step
 from .dunes import dune_transport as dune_transport

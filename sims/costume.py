@@ -377,8 +377,10 @@ def fixed_positions(costume: Costume, positions: Float[Array, "J 3"], rotations:
 
 def _push_out(x: Float[Array, "N 3"], a: Float[Array, "B 3"], b: Float[Array, "B 3"], radius: Float[Array, " B"]
               ) -> Float[Array, "N 3"]:
-    """Each vertex moved to the surface of every capsule it is inside, one capsule after the other."""
-    for k in range(a.shape[0]):   # ~25 volumes: unrolled, each a fused elementwise update
+    """Each vertex moved to the surface of every capsule it is inside, one capsule after the
+    other (unrolled: ~25 fused elementwise updates run 2-3x faster than a scan or a vectorized
+    deepest-capsule push on XLA's CPU backend; docs/noh.md)."""
+    for k in range(a.shape[0]):
         ab = b[k] - a[k]
         t = jnp.clip(jnp.sum((x - a[k]) * ab, -1) / jnp.maximum(jnp.sum(ab * ab), 1e-12), 0.0, 1.0)
         c = a[k] + t[:, None] * ab
