@@ -228,25 +228,31 @@ def _sleeve_piece(p0: np.ndarray, joints: dict[str, int], s: float, side: str, b
                   cols: int) -> _Piece:
     ua, la, hand = (p0[joints[f"{k}_{side}"]] for k in ("upper_arm", "lower_arm", "hand"))
     hips = p0[joints["hips"]]
-    # from where the arm leaves the robe's side to the wrist
+    # along the arm (shoulder - elbow - wrist) from where it leaves the robe's side to the wrist
     d_h = np.hypot(*(la - ua)[[0, 2]])
     start = ua + (la - ua) * float(np.clip((body_a - np.hypot(*(ua - hips)[[0, 2]])) / max(d_h, 1e-6), 0.0, 0.6))
-    axis = hand - start
-    length = np.linalg.norm(axis)
-    e = axis / length
-    down = np.array([0.0, -1.0, 0.0]) - e * (-e[1])
-    if np.linalg.norm(down) < 0.3:   # an arm hanging down: the sleeve's depth goes behind it
-        down = -_forward(p0, joints)
-        down = down - e * np.dot(down, e)
-    down /= np.linalg.norm(down)
+    knots = np.stack([start, la, hand])
+    seg = np.linalg.norm(np.diff(knots, axis=0), axis=-1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    along = np.linspace(0.0, 1.0, rows)
+    at = along * arc[-1]
+    centre = np.stack([np.interp(at, arc, knots[:, k]) for k in range(3)], -1)
+    dirs = np.diff(knots, axis=0) / seg[:, None]
+    bend = np.clip((at - arc[1]) / (0.25 * min(seg)) + 0.5, 0.0, 1.0)[:, None]     # the elbow, smoothed
+    e = (1 - bend) * dirs[0] + bend * dirs[1]
+    e /= np.linalg.norm(e, axis=-1, keepdims=True)
+    down = np.array([0.0, -1.0, 0.0]) - e * (-e[:, 1:2])
+    behind = -_forward(p0, joints)
+    behind = behind - e * np.sum(behind * e, -1, keepdims=True)
+    weak = np.linalg.norm(down, axis=-1, keepdims=True) < 0.3     # an arm hanging down: the depth goes behind it
+    down = np.where(weak, behind, down)
+    down /= np.linalg.norm(down, axis=-1, keepdims=True)
     across = np.cross(e, down)
     r_top, depth = 0.085 * s, 0.36 * s
     phi = 1.5 * np.pi + 2 * np.pi * np.arange(cols + 1) / cols               # from the sleeve's bottom seam
     w = r_top * np.cos(phi)
     h = np.where(np.sin(phi) >= 0, r_top * np.sin(phi), depth * np.sin(phi))
-    along = np.linspace(0.0, 1.0, rows)
-    points = start + along[:, None, None] * axis + w[None, :, None] * across + (-h)[None, :, None] * down
-    points = np.broadcast_to(points, (rows, cols + 1, 3)).copy()
+    points = centre[:, None] + w[None, :, None] * across[:, None] + (-h)[None, :, None] * down[:, None]
     st = np.stack(np.meshgrid(np.arange(cols + 1) / cols, along, indexing="xy"), -1)
     return _Piece(points, st, True, np.ones((rows - 1, cols), bool), COSTUME_LAYOUT[f"sleeve_{side}"])
 
@@ -319,6 +325,12 @@ def dress_performer(motion: SkeletonMotion, joints: dict[str, int], *, rows: int
     sleeves = [_sleeve_piece(p0, joints, s, side, r_shoulder_a, sleeve_rows, sleeve_cols) for side in ("L", "R")]
     pts, uv, render_index, tris, pairs, grids = _assemble([body] + sleeves)
     n = pts.shape[0]
+    # the cut wraps the body: pushed out of its volumes first, so that it starts unstressed
+    volumes = body_volumes(motion, joints)
+    a, b = (np.asarray(e, np.float64) for e in volumes.ends(motion.positions[0], motion.rotations[0]))
+    ends = [jnp.asarray(a), jnp.asarray(b), jnp.asarray(np.asarray(volumes.radius, np.float64) + margin)]
+    for _ in range(3):
+        pts = np.asarray(_push_out(jnp.asarray(pts), *ends), np.float64)
     # seams: the top of each sleeve's inner ring to the nearest body vertex on the side opening
     body_ids = grids[0][grids[0] >= 0]
     seam = []
@@ -350,7 +362,6 @@ def dress_performer(motion: SkeletonMotion, joints: dict[str, int], *, rows: int
         fixed_joint.append(torso[int(np.argmin(dist))])
     fixed_joint = np.asarray(fixed_joint, np.int64)
     local = np.einsum("pji,pj->pi", r0[fixed_joint], pts[fixed] - p0[fixed_joint])
-    volumes = body_volumes(motion, joints)
     sim_tris = render_index[tris]
     x0 = jnp.asarray(pts, dtype)
     costume = Costume(ClothState(x0, x0, jnp.zeros((), dtype)), springs, jnp.asarray(fixed, jnp.int32),
