@@ -19,6 +19,7 @@ import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from jaxrender.fabric import (
+    GBuffer,
     Pinhole,
     depth_map,
     fresnel_schlick,
@@ -59,7 +60,8 @@ class FrameCounts(eqx.Module):
     performer_mask: Array
     performer: Array
     reflection: Array
-    view_extent: Array
+    view_extent: Array      # the largest triangle's extent in pixels, in the view or its mirror image
+    view_large: Array       # ... how many triangles outgrew the small window
     shadow_extent: Array
     shadow_large: Array
     bounds: Array           # (x0, y0, x1, y1) in pixels of the performer's vertices, then of its mirror image's
@@ -103,6 +105,26 @@ def _compact(mask: Array, capacity: int) -> tuple[Array, Array, Array]:
     n = flat.shape[0]
     index = jnp.nonzero(flat, size=capacity, fill_value=n)[0].astype(jnp.int32)
     return index, jnp.minimum(index, n - 1), jnp.sum(flat.astype(jnp.int32))
+
+
+def split_rasterize(ph: Pinhole, x: Array, triangles: Array, uv: Array, *, window: int, large_window: int,
+                    large_capacity: int) -> tuple[GBuffer, Array, Array]:
+    """The G-buffer of a mesh with most triangles rasterized in `window` and the few larger ones
+    (at most `large_capacity`, compacted) in `large_window`, nearest of the two per pixel (the
+    same G-buffer as one pass with the large window; docs/noh.md). Also the largest extent
+    and how many triangles were large."""
+    ext = _extents(ph, x, triangles)
+    large = ext > window
+    n_tri = triangles.shape[0]
+    padded = jnp.concatenate([triangles, jnp.zeros((1, 3), triangles.dtype)])
+    pick = jnp.nonzero(large, size=large_capacity, fill_value=n_tri)[0]
+    small = rasterize(ph, x, jnp.where(large[:, None], 0, triangles), uv, window=window)
+    big = rasterize(ph, x, padded[pick], uv, window=large_window)
+    big = eqx.tree_at(lambda g: g.triangle, big, jnp.where(big.hit > 0, pick[jnp.maximum(big.triangle, 0)], -1))
+    nearer = big.distance < small.distance
+    merged = jax.tree_util.tree_map(
+        lambda a, b: jnp.where(nearer.reshape(nearer.shape + (1,) * (a.ndim - 2)), b, a), small, big)
+    return merged, jnp.max(ext), jnp.sum(large.astype(jnp.int32))
 
 
 def fire_depth_maps(rig: NohRig, x: Array, triangles: Array) -> tuple[ShadowMap, Array, Array]:
@@ -188,7 +210,8 @@ def noh_frame(scene: NohScene, rig: NohRig, state: ClothState, emission: Float[A
 
     # what the camera sees of the performer, in front of the stage (rasterized in its box)
     vb, mb = rig.view_box, rig.mirror_box
-    gb = rasterize(_cropped(ph, vb), x, tris, mesh.uv, window=rig.window)
+    split = dict(window=rig.window, large_window=rig.large_view_window, large_capacity=rig.large_view_capacity)
+    gb, g_extent, g_large = split_rasterize(_cropped(ph, vb), x, tris, mesh.uv, **split)
     in_box = (gb.hit > 0) & (gb.distance < rig.stage.t[vb[1]:vb[1] + vb[3], vb[0]:vb[0] + vb[2]])
     g_scatter, g_gather, g_count = _compact(in_box, rig.capacity)
     points = pick(mesh, gb, g_gather)
@@ -200,7 +223,7 @@ def noh_frame(scene: NohScene, rig: NohRig, state: ClothState, emission: Float[A
 
     # the mirrored performer: what the polished floors reflect, as real points seen from the floor
     mv, mn, mt = mirror_mesh(x, mesh.normals, tris, jnp.zeros(3, dtype), up)
-    gbr = rasterize(_cropped(ph, mb), mv, mt, mesh.uv, window=rig.window)
+    gbr, r_extent, r_large = split_rasterize(_cropped(ph, mb), mv, mt, mesh.uv, **split)
     in_mirror = (slice(mb[1], mb[1] + mb[3]), slice(mb[0], mb[0] + mb[2]))
     reflects = (gbr.hit > 0) & (gbr.distance < rig.mirror.stop[in_mirror]) & ~seen[in_mirror]
     r_scatter, r_gather, r_count = _compact(reflects, rig.reflection_capacity)
@@ -250,8 +273,8 @@ def noh_frame(scene: NohScene, rig: NohRig, state: ClothState, emission: Float[A
     img = img.at[g_scatter].set(g_rad, mode="drop")
     surface_t = jnp.where(seen, g_distance, st.t)
     img = img.at[rig.flames.index].add(_flames(rig.flames, emission, surface_t)).reshape(h, w, 3)
-    view_extent = jnp.maximum(jnp.max(_extents(ph, x, tris)), jnp.max(_extents(ph, mv, mt)))
-    counts = FrameCounts(seen, g_count, r_count, view_extent, shadow_extent, shadow_large,
+    counts = FrameCounts(seen, g_count, r_count, jnp.maximum(g_extent, r_extent), jnp.maximum(g_large, r_large),
+                         shadow_extent, shadow_large,
                          jnp.concatenate([projected_bounds(ph, x), projected_bounds(ph, mv)]))
     return img, state, counts
 
@@ -274,8 +297,10 @@ def grown(rig: NohRig, counts: FrameCounts) -> NohRig | None:
         changes["capacity"] = round_up(1.25 * int(counts.performer))
     if int(counts.reflection) > rig.reflection_capacity:
         changes["reflection_capacity"] = round_up(1.25 * int(counts.reflection))
-    if float(counts.view_extent) > rig.window:
-        changes["window"] = pow2(float(counts.view_extent))
+    if float(counts.view_extent) > rig.large_view_window:
+        changes["large_view_window"] = pow2(float(counts.view_extent))
+    if int(counts.view_large) > rig.large_view_capacity:
+        changes["large_view_capacity"] = round_up(1.25 * int(counts.view_large), 64)
     if float(counts.shadow_extent) > rig.large_window:
         changes["large_window"] = pow2(float(counts.shadow_extent))
     bounds = np.asarray(counts.bounds)

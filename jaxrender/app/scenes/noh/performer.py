@@ -26,7 +26,9 @@ BODY_PAGE = {"face": (0.0, 0.0, 0.5, 0.75), "hair": (0.5, 0.0, 0.25, 0.5), "skin
              "white": (0.75, 0.25, 0.25, 0.25), "inner": (0.5, 0.5, 0.5, 0.25)}
 # which region each body volume wears
 _VOLUME_REGION = {"head": "hair", "hand": "skin", "foot": "white", "toes": "white"}
-_AROUND, _RINGS = 10, 3     # capsule tessellation: vertices around, rings per hemisphere
+_AROUND, _RINGS, _SEGMENTS = 10, 3, 4     # capsule tessellation: around, rings per cap, cylinder pieces
+# the volumes that can be seen (the others stay inside the robe whatever the dance does)
+SHOWN = ("chest", "neck", "head", "upper_arm", "lower_arm", "hand", "shin", "foot", "toes")
 
 
 class PerformerRig(eqx.Module):
@@ -34,7 +36,8 @@ class PerformerRig(eqx.Module):
 
     costume: Costume
     motion: SkeletonMotion
-    capsule_uv: Float[Array, "B Vc 2"]        # each capsule's template uv on the body page (+ page 1)
+    shown: Int[Array, " S"]                   # the volumes drawn as capsules
+    capsule_uv: Float[Array, "S Vc 2"]        # each one's template uv on the body page (+ page 1)
     mask_joint: int = eqx.field(static=True)
     mask_local: Float[Array, "M 3"]           # the mask's vertices in the head joint's frame
     mask_uv: Float[Array, "M 2"]
@@ -50,11 +53,14 @@ class PerformerMesh(eqx.Module):
 
 def _capsule_template() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Unit capsule along +z from 0 to 1 (radius 1 in x, y): (along, offset direction, triangles,
-    uv). A vertex lies at a + along (b - a) + radius * direction (in the capsule's frame)."""
+    uv). A vertex lies at a + along (b - a) + radius * direction (in the capsule's frame). The
+    cylinder between the caps is cut into `_SEGMENTS` so that no triangle is long on screen."""
     rings = []
     for k in range(_RINGS + 1):          # the hemisphere at a: from its pole to its equator
         th = np.pi / 2 * k / _RINGS
         rings.append((0.0, -np.cos(th), np.sin(th)))
+    for k in range(1, _SEGMENTS):        # along the cylinder
+        rings.append((k / _SEGMENTS, 0.0, 1.0))
     for k in range(_RINGS + 1):          # the hemisphere at b: equator to pole
         th = np.pi / 2 * k / _RINGS
         rings.append((1.0, np.sin(th), np.cos(th)))
@@ -111,10 +117,12 @@ def performer_rig(costume: Costume, motion: SkeletonMotion, joints: dict[str, in
     forward direction) and give every capsule its body-page region."""
     body = costume.body
     dtype = default_float()
-    regions = []
-    for name in body.names:
-        base = name.rsplit("_", 1)[0] if name[-2:] in ("_L", "_R") else name
-        regions.append(_VOLUME_REGION.get(base, "inner"))
+    regions, shown = [], []
+    for k, name in enumerate(body.names):
+        base = name[:-2] if name[-2:] in ("_L", "_R") else name
+        if base in SHOWN:
+            shown.append(k)
+            regions.append(_VOLUME_REGION.get(base, "inner"))
     capsule_uv = np.stack([_region_uv(r, _CAPSULE_UV) for r in regions])
     p0 = np.asarray(motion.positions[0], np.float64)
     r0 = np.asarray(motion.rotations[0], np.float64)
@@ -131,7 +139,8 @@ def performer_rig(costume: Costume, motion: SkeletonMotion, joints: dict[str, in
     centre = 0.5 * (a + b) - 0.012 * scale * up + (radius - 0.035 * scale) * forward
     world = centre + scale * (verts[:, :1] * -right + verts[:, 1:2] * up + verts[:, 2:3] * forward)
     local = (world - p0[head]) @ r0[head]            # R^T (p - joint), row vectors
-    return PerformerRig(costume, motion, jnp.asarray(capsule_uv, dtype), head, jnp.asarray(local, dtype),
+    return PerformerRig(costume, motion, jnp.asarray(shown, jnp.int32), jnp.asarray(capsule_uv, dtype), head,
+                        jnp.asarray(local, dtype),
                         jnp.asarray(_region_uv("face", st), dtype), jnp.asarray(tris, jnp.int32))
 
 
@@ -151,7 +160,7 @@ def performer_mesh(rig: PerformerRig, state: ClothState) -> PerformerMesh:
     dtype = x.dtype
     pos, rot = rig.motion.at(state.time)
     a, b = costume.body.ends(pos, rot)
-    radius = costume.body.radius
+    a, b, radius = a[rig.shown], b[rig.shown], costume.body.radius[rig.shown]
     frames = _capsule_frames(a, b)                                             # B 3 3
     along = jnp.asarray(_ALONG, dtype)
     direction = jnp.asarray(_DIRECTION, dtype)

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from jaxrender.fabric import Pinhole, camera_pinhole, raster_window, reflect_directions, reflect_points
+from jaxrender.fabric import Pinhole, camera_pinhole, reflect_directions, reflect_points
 from jaxrender.lights import env_radiance, sample_envmap
 
 from .performer import performer_mesh
@@ -93,7 +93,9 @@ class NohRig(eqx.Module):
     light_position: Float[Array, "Q 3"]
     light_rotation: Float[Array, "Q 3 3"]
     tan_cutoff: float = eqx.field(static=True)
-    window: int = eqx.field(static=True)
+    window: int = eqx.field(static=True)                 # the G-buffers' raster window for most triangles
+    large_view_window: int = eqx.field(static=True)      # ... for the few larger ones
+    large_view_capacity: int = eqx.field(static=True)
     shadow_window: int = eqx.field(static=True)          # the depth maps' raster window for most triangles
     large_window: int = eqx.field(static=True)           # ... for the few larger ones
     large_capacity: int = eqx.field(static=True)
@@ -321,7 +323,13 @@ def prepare_rig(scene: NohScene, *, key: PRNGKeyArray, k_env: int = 20, shadow_r
     mirrored_flames = _flame_pixels(t, uv, inside & (t > t_stage[None]) & (coat[None] > 0)
                                     & (t < stop.reshape(h, w)[None]))
     # fixed sizes from frame 0, with margins for the motion; boxes from the whole path
-    window = pow2(1.1 * raster_window(ph, mesh.vertices, mesh.triangles))
+    # the G-buffers' windows: most triangles in 16 pixels (the robe's are ~6-17 at 720 x 480), the
+    # others of frame 0 (with margins for the motion) in a larger one
+    px_tri = np.asarray(px)[np.asarray(mesh.triangles)]
+    view_ext = np.max(np.ptp(px_tri, axis=1), axis=-1) + 2
+    window = 16
+    large_view_window = pow2(max(2 * window, 1.5 * float(view_ext.max())))
+    large_view_capacity = round_up(2 * int(np.sum(view_ext > window)) + 64, 64)
     corners = np.asarray([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
     view_box = pixel_box(_project_bounds(ph, corners), ph, 0.02)
     mirror_box = pixel_box(_project_bounds(ph, corners * np.asarray([1.0, -1.0, 1.0])), ph, 0.02)
@@ -340,8 +348,9 @@ def prepare_rig(scene: NohScene, *, key: PRNGKeyArray, k_env: int = 20, shadow_r
     steps = max(1, int(round(frame_dt / scene.performer.costume.dt)))
     return NohRig(ph, view.rays, view.background, view.mirrored_sky, stage, mirror, grid, view.env_direction,
                   performer_env, flames, mirrored_flames, jnp.asarray(light_pos, dtype), jnp.asarray(light_rot, dtype),
-                  float(tan_c), window, shadow_window, pow2(max(shadow_resolution / 4, 1.5 * largest)),
-                  round_up(1.5 * most + 32, 64), shadow_resolution, round_up(0.75 * covered),
+                  float(tan_c), window, large_view_window, large_view_capacity, shadow_window,
+                  pow2(max(2 * shadow_window, 1.5 * largest)), round_up(1.5 * most + 32, 64), shadow_resolution,
+                  round_up(0.75 * covered),
                   round_up(0.35 * covered), steps, float(near), float(roughness), view_box, mirror_box)
 
 
