@@ -103,11 +103,16 @@ _NOH_CHILD = textwrap.dedent("""
     import numpy as np
     import jax
     assert not jax.config.jax_enable_x64
-    from jaxrender.app.scenes.noh import render_noh
+    from jaxrender.app.scenes.noh import default_btfs, render_noh
     spec = json.loads(sys.argv[2])
-    frames = render_noh(frames=1, width=spec["width"], height=spec["height"], key=jax.random.key(spec["seed"]))
+    frames = render_noh(frames=1, width=spec["width"], height=spec["height"], key=jax.random.key(spec["seed"]),
+                        btfs=default_btfs(size=8, pyramid="none"), **spec["small"])
     np.save(sys.argv[3], np.asarray(frames[0]))
 """)
+# the Noh scene at a small size (a coarse robe, small shadow maps and flames, level-0 BTFs): the
+# comparison is of the dtype, not of the detail
+_NOH_SMALL = dict(robe=dict(rows=12, cols=12, sleeve_rows=4, sleeve_cols=8, settle_steps=400), shadow_resolution=64,
+                  flame_size=(16, 8))
 
 
 def block_means(image: np.ndarray, block: int = 8) -> np.ndarray:
@@ -119,14 +124,15 @@ def block_means(image: np.ndarray, block: int = 8) -> np.ndarray:
 def test_noh_frame_float32_matches_float64(tmp_path):
     import jax
 
-    from jaxrender.app.scenes.noh import render_noh
+    from jaxrender.app.scenes.noh import default_btfs, render_noh
 
-    spec = dict(width=64, height=48, seed=0)
+    spec = dict(width=64, height=48, seed=0, small=_NOH_SMALL)
     image32 = render_float32_child(tmp_path, _NOH_CHILD, {"unused": np.zeros(1)}, spec)
     # the Noh scene broadcasts a (3,) colour against (H, W, 1) arrays: allowed here only (the suite
     # raises on implicit rank promotion; the command line does not set that option)
     with jax.numpy_rank_promotion("allow"):
-        frames64 = render_noh(frames=1, width=spec["width"], height=spec["height"], key=jax.random.key(spec["seed"]))
+        frames64 = render_noh(frames=1, width=spec["width"], height=spec["height"], key=jax.random.key(spec["seed"]),
+                              btfs=default_btfs(size=8, pyramid="none"), **_NOH_SMALL)
     image64 = np.asarray(frames64[0], np.float64)
     assert image32.shape == image64.shape == (48, 64, 3)
     assert np.all(np.isfinite(image32)) and image32.min() >= 0.0

@@ -20,6 +20,8 @@ from jaxrender.lights import EnvMap
 from .motion import render_sequence
 from .scene import noh_scene
 
+EXPOSURE_KEY = 0.22   # the performer's 90th-percentile luminance on screen: a night lit by fires
+
 
 def render_noh(*, frames: int = 60, width: int = 720, height: int = 480, key: PRNGKeyArray | None = None,
                mask_rgb: np.ndarray | None = None, btfs: dict[str, list[BTFTexel]] | None = None,
@@ -32,7 +34,7 @@ def render_noh(*, frames: int = 60, width: int = 720, height: int = 480, key: PR
     `progress(1)` is called after each frame; `info` (a dict) receives `prepare_s` (scene, robe
     and the sequence's constant part), `compile_s` (the first frame, including compilation),
     `frame_s` (a list, later frames), `recompiles` and `exposure` (for `tonemap_frames`: the
-    performer's 90th-percentile luminance in frame 0 -> 0.3). `time_repeats` = N: afterwards N
+    performer's 90th-percentile luminance in frame 0 -> `EXPOSURE_KEY`). `time_repeats` = N: afterwards N
     more frames of the dance (discarded) timed into `info["timed_s"]`.
     """
     key = jax.random.key(2024) if key is None else key
@@ -50,7 +52,7 @@ def render_noh(*, frames: int = 60, width: int = 720, height: int = 480, key: PR
         mask = details.pop("performer_mask").reshape(-1)
         lum = np.asarray(luminance(out[0].reshape(-1, 3)[mask]))
         info.update(details, prepare_s=scene_s + details["prepare_s"],
-                    exposure=0.3 / max(float(np.percentile(lum, 90)) if lum.size else 1.0, 1e-6))
+                    exposure=EXPOSURE_KEY / max(float(np.percentile(lum, 90)) if lum.size else 1.0, 1e-6))
     return np.stack(out)
 
 

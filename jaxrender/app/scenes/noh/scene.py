@@ -29,8 +29,9 @@ from .performer import PerformerRig, body_page, performer_rig
 from .stage import FIRE_SITES, FLAME_BASE, FLAME_SIZE, StageGeometry, build_stage
 
 STAGE_SPOT = (0.0, 0.6)                               # where the performer's path is centred (x, z)
-CAMERA = ((2.9, 1.45, 7.1), (-0.45, 1.25, -0.6), 42.0)  # eye, target, vertical field of view (deg)
+CAMERA = ((2.0, 1.6, 7.2), (-0.45, 1.1, -0.2), 40.0)   # eye, target, vertical field of view (deg)
 ATLAS = 512                                           # each texture page's side (texels)
+SKY_IRRADIANCE = 0.02                                 # the dusk sky on the open ground (the bonfires dominate)
 
 
 class NohScene(eqx.Module):
@@ -119,6 +120,6 @@ def noh_scene(*, width: int = 720, height: int = 480, frames: int = 20, key: PRN
         fallback = default_btfs(size=btf_size, pyramid=pyramid)
         btfs = {**{n: fallback[n] for n in missing}, **btfs}
     mats = stack_materials([btfs[name] for name in LABELS])
-    env = default_environment() if env is None else env
+    env = default_environment(irradiance=SKY_IRRADIANCE) if env is None else env
     return NohScene(cam, fires, flames, jnp.asarray(labels), jnp.asarray(colours, dtype=dtype), mats, env,
                     build_stage(), performer, float(tiles))
