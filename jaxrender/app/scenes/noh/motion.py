@@ -117,7 +117,7 @@ def split_rasterize(ph: Pinhole, x: Array, triangles: Array, uv: Array, *, windo
     large = ext > window
     n_tri = triangles.shape[0]
     padded = jnp.concatenate([triangles, jnp.zeros((1, 3), triangles.dtype)])
-    pick = jnp.nonzero(large, size=large_capacity, fill_value=n_tri)[0]
+    pick = jnp.nonzero(large, size=large_capacity, fill_value=n_tri)[0].astype(triangles.dtype)
     small = rasterize(ph, x, jnp.where(large[:, None], 0, triangles), uv, window=window)
     big = rasterize(ph, x, padded[pick], uv, window=large_window)
     big = eqx.tree_at(lambda g: g.triangle, big, jnp.where(big.hit > 0, pick[jnp.maximum(big.triangle, 0)], -1))
