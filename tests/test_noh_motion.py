@@ -6,6 +6,7 @@ at every pixel."""
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,6 +29,14 @@ from jaxrender.shadows import pcss
 from sims import advance_costume, noh_dance
 
 _ROBE = dict(rows=12, cols=12, sleeve_rows=4, sleeve_cols=8, settle_steps=400)
+_mesh = eqx.filter_jit(performer_mesh)    # the helpers below jitted: eager op-by-op dispatch compiles every op
+_depth_maps = eqx.filter_jit(fire_depth_maps)
+_split = eqx.filter_jit(split_rasterize)
+_shadows = eqx.filter_jit(fire_shadows)
+_cast = eqx.filter_jit(cast_stage)
+_depth_map = eqx.filter_jit(depth_map)
+_rasterize = eqx.filter_jit(rasterize)
+
 UNIT_RTOL = 0.05        # 4 x 2 points over a flame quad against a 64 x 64 quadrature, >= 1 m away
 SHADOW_MEAN_TOL = 0.02  # half-resolution PCSS read back bilinearly: a block's blur at the soft edges
 
@@ -97,14 +106,14 @@ def test_split_depth_maps_equal_one_pass(setup):
     """Most triangles in a small window, the large ones compacted into a large one, combined by
     their minimum, against one `depth_map` pass whose window covers every triangle."""
     scene, rig = setup
-    mesh = performer_mesh(scene.performer, scene.performer.costume.state)
+    mesh = _mesh(scene.performer, scene.performer.costume.state)
     small = dataclasses.replace(rig, shadow_window=4, large_window=64, large_capacity=mesh.triangles.shape[0])
-    maps, largest, most = fire_depth_maps(small, mesh.vertices, mesh.triangles)
+    maps, largest, most = _depth_maps(small, mesh.vertices, mesh.triangles)
     assert 0 < int(most) <= small.large_capacity and float(largest) <= small.large_window
     for q in range(rig.light_position.shape[0]):
         sp = spot_pinhole(rig.light_position[q], rig.light_rotation[q], rig.tan_cutoff, rig.shadow_resolution)
-        ref = np.asarray(depth_map(sp, mesh.vertices, mesh.triangles,
-                                   window=raster_window(sp, mesh.vertices, mesh.triangles)))
+        ref = np.asarray(_depth_map(sp, mesh.vertices, mesh.triangles,
+                                    window=raster_window(sp, mesh.vertices, mesh.triangles)))
         got = np.asarray(maps.depth[q])
         assert np.isfinite(ref).sum() > 20
         np.testing.assert_array_equal(np.isfinite(got), np.isfinite(ref))
@@ -117,15 +126,14 @@ def test_boxed_split_g_buffer_equals_one_full_image_pass(setup):
     small window and the large ones in a large one, merged by distance) against one `rasterize`
     over the whole image with a window covering every triangle: the same pixels."""
     scene, rig = setup
-    mesh = performer_mesh(scene.performer, scene.performer.costume.state)
+    mesh = _mesh(scene.performer, scene.performer.costume.state)
     x0, y0, bw, bh = rig.view_box
     assert (bw, bh) != (rig.pinhole.width, rig.pinhole.height)          # the box does crop at this size
-    got, largest, n_large = split_rasterize(_cropped(rig.pinhole, rig.view_box), mesh.vertices, mesh.triangles,
-                                            mesh.uv, window=4, large_window=64,
-                                            large_capacity=mesh.triangles.shape[0])
+    got, largest, n_large = _split(_cropped(rig.pinhole, rig.view_box), mesh.vertices, mesh.triangles, mesh.uv,
+                                   window=4, large_window=64, large_capacity=mesh.triangles.shape[0])
     assert int(n_large) > 0 and float(largest) <= 64
-    ref = rasterize(rig.pinhole, mesh.vertices, mesh.triangles, mesh.uv,
-                    window=raster_window(rig.pinhole, mesh.vertices, mesh.triangles))
+    ref = _rasterize(rig.pinhole, mesh.vertices, mesh.triangles, mesh.uv,
+                     window=raster_window(rig.pinhole, mesh.vertices, mesh.triangles))
     crop = (slice(y0, y0 + bh), slice(x0, x0 + bw))
     assert float(np.asarray(ref.hit).sum()) == float(np.asarray(got.hit).sum()) > 50   # all of it inside the box
     np.testing.assert_array_equal(np.asarray(got.hit), np.asarray(ref.hit)[crop])
@@ -142,7 +150,7 @@ def test_stage_unit_fire_irradiance_matches_a_dense_quadrature(setup):
     st = rig.stage
     pos = np.asarray(rig.pinhole.origin)[None] + np.asarray(st.t).reshape(-1)[np.asarray(st.index)][:, None] * \
         np.asarray(rig.rays).reshape(-1, 3)[np.asarray(st.index)]
-    hits = cast_stage(scene.stage, jnp.broadcast_to(rig.pinhole.origin, (pos.shape[0], 3)),
+    hits = _cast(scene.stage, jnp.broadcast_to(rig.pinhole.origin, (pos.shape[0], 3)),
                       jnp.asarray(np.asarray(rig.rays).reshape(-1, 3)[np.asarray(st.index)]))
     normal = np.asarray(hits.normal, np.float64)
     fl = scene.fires
@@ -166,14 +174,14 @@ def test_stage_unit_fire_irradiance_matches_a_dense_quadrature(setup):
 
 def test_half_resolution_stage_shadows_match_pcss_at_every_pixel(setup):
     scene, rig = setup
-    mesh = performer_mesh(scene.performer, scene.performer.costume.state)
-    maps, _, _ = fire_depth_maps(rig, mesh.vertices, mesh.triangles)
-    _, half = fire_shadows(rig, maps, mesh.vertices[:4])
+    mesh = _mesh(scene.performer, scene.performer.costume.state)
+    maps, _, _ = _depth_maps(rig, mesh.vertices, mesh.triangles)
+    _, half = _shadows(rig, maps, mesh.vertices[:4])
     st = rig.stage
     pos = np.asarray(rig.pinhole.origin)[None] + np.asarray(st.t).reshape(-1)[np.asarray(st.index)][:, None] * \
         np.asarray(rig.rays).reshape(-1, 3)[np.asarray(st.index)]
-    full = jax.vmap(lambda sm: pcss(sm, jnp.asarray(pos), light_size=float(FLAME_SIZE[0]), near=rig.near,
-                                    bias=0.02))(maps)
+    full = jax.jit(jax.vmap(lambda sm, p: pcss(sm, p, light_size=float(FLAME_SIZE[0]), near=rig.near, bias=0.02),
+                            in_axes=(0, None)))(maps, jnp.asarray(pos))
     full, half = np.asarray(full), np.asarray(half)
     assert np.any(full < 0.5)                                     # the performer does shadow the stage
     err = np.abs(half - full)

@@ -20,7 +20,7 @@ from jaxrender.lights import EnvMap
 from .motion import render_sequence
 from .scene import noh_scene
 
-EXPOSURE_KEY = 0.22   # the performer's 90th-percentile luminance on screen: a night lit by fires
+EXPOSURE_KEY = 0.16   # the performer's 90th-percentile luminance on screen: a night lit by fires
 
 
 def render_noh(*, frames: int = 60, width: int = 720, height: int = 480, key: PRNGKeyArray | None = None,
