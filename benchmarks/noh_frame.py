@@ -11,10 +11,10 @@ Timed: the scene + rig setup (robe made and settled, stage cast and lit), the fi
 (compile) apart, then `--frames` frames of the dance (default 24), wall and process CPU,
 min/median/max; then the pieces of the last frame, each jitted alone (median of 3, wall and
 CPU). Rows "25 Noh" to benchmarks/results/noh_frame.json (not with --quick). The last frame goes
-to benchmarks/figures/noh_frame.png (`--quick`: noh_frame_quick.png, not committed).
+to benchmarks/figures/noh_frame_<motion>.png (`--quick`: ..._quick.png, not committed).
 
 Run: `python benchmarks/noh_frame.py` (720x480, both motions) or `--quick` (160x120, a coarse
-robe, 64^2 depth maps, level-0 BTFs, 3 frames of the built-in motion: the smoke run).
+robe not settled, 64^2 depth maps, level-0 BTFs, 3 frames of the built-in motion: the smoke run).
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ def run_motion(label: str, motion, args) -> dict:
     key = jax.random.key(2024)                     # as `jaxrender noh` (its default seed)
     k_scene, k_rest = jax.random.split(key)
     k_env, k_frames = jax.random.split(k_rest)
-    small = dict(robe=dict(rows=14, cols=14, sleeve_rows=5, sleeve_cols=8, settle_steps=600),
+    small = dict(robe=dict(rows=14, cols=14, sleeve_rows=5, sleeve_cols=8, settle_steps=0),
                  flame_size=(32, 16)) if quick else {}
     t = time.perf_counter()
     btfs = noh.default_btfs(size=8, pyramid="none") if quick else None

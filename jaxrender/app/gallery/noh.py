@@ -21,7 +21,7 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
     out_dir = Path(out_dir)
     sub = out_dir / "noh"
     frames_n, w, h = (3, 160, 120) if quick else (60, 720, 480)
-    extra = dict(robe=dict(rows=14, cols=14, sleeve_rows=5, sleeve_cols=8, settle_steps=600),
+    extra = dict(robe=dict(rows=14, cols=14, sleeve_rows=5, sleeve_cols=8, settle_steps=0),
                  shadow_resolution=128, flame_size=(32, 16)) if quick else {}
     timings: dict = {}
     t0 = time.perf_counter()
