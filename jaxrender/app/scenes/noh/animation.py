@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -84,7 +85,9 @@ def write_animation(out_dir: str | os.PathLike, frames: np.ndarray, *, name: str
         # H.264 in yuv420p needs even sides: pad by one edge row / column if odd
         h, w = rgb8.shape[1], rgb8.shape[2]
         even = np.pad(rgb8, ((0, 0), (0, h % 2), (0, w % 2), (0, 0)), mode="edge")
-        with atomic_path(out_dir / f"{name}.mp4") as tmp:
+        with atomic_path(out_dir / f"{name}.mp4") as tmp, warnings.catch_warnings():
+            # imageio-ffmpeg starts ffmpeg by fork + exec, which JAX warns about (harmless: exec follows)
+            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
             iio.imwrite(tmp, even, plugin="FFMPEG", fps=fps, codec="libx264", macro_block_size=1, quality=8)
         paths.append(out_dir / f"{name}.mp4")
     return paths
