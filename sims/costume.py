@@ -330,7 +330,7 @@ def dress_performer(motion: SkeletonMotion, joints: dict[str, int], *, rows: int
     a, b = (np.asarray(e, np.float64) for e in volumes.ends(motion.positions[0], motion.rotations[0]))
     ends = [jnp.asarray(a), jnp.asarray(b), jnp.asarray(np.asarray(volumes.radius, np.float64) + margin)]
     for _ in range(3):
-        pts = np.asarray(_push_out(jnp.asarray(pts), *ends), np.float64)
+        pts = np.asarray(_push_out_jit(jnp.asarray(pts, ends[0].dtype), *ends), np.float64)
     # seams: the top of each sleeve's inner ring to the nearest body vertex on the side opening
     body_ids = grids[0][grids[0] >= 0]
     seam = []
@@ -375,6 +375,7 @@ def dress_performer(motion: SkeletonMotion, joints: dict[str, int], *, rows: int
     return costume
 
 
+_push_out_jit = jax.jit(lambda x, a, b, r: _push_out(x, a, b, r))   # eagerly, ~25 capsules compile op by op
 _settle_jit = eqx.filter_jit(lambda c, m, steps: advance_costume(c, c.state, m, steps=steps))
 
 
