@@ -27,6 +27,7 @@ from .costume import costume_frames as costume_frames
 from .costume import dress_performer as dress_performer
 from .costume import performer_joints as performer_joints
 from .costume import volume_penetration as volume_penetration
+from .dance import noh_dance as noh_dance
 from .dunes import DuneParams as DuneParams
 from .dunes import dune_step as dune_step
 from .dunes import dune_transport as dune_transport
@@ -49,7 +50,6 @@ from .footprints import press_trail as press_trail
 from .footprints import relax_to_repose as relax_to_repose
 from .footprints import repose_excess as repose_excess
 from .footprints import trail_steps as trail_steps
-from .noh_dance import noh_dance as noh_dance
 from .ripples import RippleParams as RippleParams
 from .ripples import dominant_wavelength as dominant_wavelength
 from .ripples import init_ripples as init_ripples
