@@ -24,6 +24,14 @@ ONE nearest-texel fetch of the light map pre-filtered onto a grid `bake` times f
 fetches per sample). Cost per pixel and light: `samples` x (about 60 flops, one exp, one or two
 gathers); only the rays that enter a light's cone are evaluated for it (`active_rays_map`).
 
+Fog with a density grid (issue 24): each sample also needs d(P) (a trilinear lookup of the
+grid), the optical depth toward the light (the light's `DepthVolume`, indexed by the same uv as
+the shadow map and the sample's distance) and toward the eye: the eye's volume gives it at the
+ends of the ray's interval and a trapezoid rule over the samples' own d fills in between,
+anchored at both ends (so it costs no lookup per sample). The interval itself is cut to the
+grid's box. Its weight rho d F I exp(-rho kappa (tau_l + tau_v)) dphi / h replaces the uniform
+fog's; a grid of ones reproduces it to rounding. See docs/fog.md.
+
 Surfaces: two-sided Lambert with extinction (`surface_term`), shadowed by the same shadow maps
 (`shadow_map_visibility`, the plane method's slope-scaled lookup) or, on request, by exact shadow
 rays. Gradients flow to rho, kappa, K, intensity, the light's pose (geometry, falloff,
@@ -44,6 +52,8 @@ from ..geometry import cast_rays, hit_point
 from ..lights import SpotLight
 from ..maths import atan_nonneg, outer
 from ..textures import bilinear
+from ._density import DepthVolume
+from ._fog import RayFog, fog_volumes
 from ._model import FAR, cone_intervals, light_reach, surface_term
 from ._raymarch import surface_visibility
 from ._scene import ShaftsScene, shadow_maps
@@ -84,13 +94,33 @@ def bake_light_map(light: SpotLight, *, bake: int = _BAKE, max_size: int = _BAKE
     return bilinear(lmap, jnp.stack([u, v], axis=-1), wrap="clamp")
 
 
+def _view_depth_along(view: DepthVolume, eye: Array, dirs: Array, t: Array) -> Array:
+    return view.lookup_points(eye + t[..., None] * dirs)
+
+
+def _anchored_view_depth(dens: Array, t_s: Array, t0: Array, t1: Array, tau0: Array, tau1: Array) -> Array:
+    """Optical depth from the eye at the samples t_s (*B, S) (sorted, inside [t0, t1]): the
+    trapezoid rule over the samples' densities, started at tau0 = tau(t0) and corrected linearly in
+    t so that it ends at tau1 = tau(t1) (both from the eye's volume)."""
+    first = dens[..., :1] * (t_s[..., :1] - t0[..., None])
+    steps = 0.5 * (dens[..., 1:] + dens[..., :-1]) * (t_s[..., 1:] - t_s[..., :-1])
+    cum = jnp.cumsum(jnp.concatenate([first, steps], axis=-1), axis=-1)
+    total = cum[..., -1] + dens[..., -1] * (t1 - t_s[..., -1])
+    span = t1 - t0
+    ok = span > 0
+    frac = (t_s - t0[..., None]) / jnp.where(ok, span, 1.0)[..., None]
+    return tau0[..., None] + cum + frac * jnp.where(ok, tau1 - tau0 - total, 0.0)[..., None]
+
+
 def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: Float[Array, "N N 3"] | None,
                            eye: Float[Array, "3"], dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"],
-                           t1: Float[Array, "*B"], rho, kappa, K, bias, *, samples: int) -> Float[Array, "*B 3"]:
+                           t1: Float[Array, "*B"], rho, kappa, K, bias, *, samples: int,
+                           fog: RayFog | None = None) -> Float[Array, "*B 3"]:
     """In-scattered radiance of one spot light along view rays eye + t dirs, t in [t0, t1]
     (eq. 2, `samples` midpoints equally spaced in the angle seen from the light; see the module
     docstring). `depth`: the light's shadow map (distances, nearest texel + `bias`); `baked`: the
-    light map from `bake_light_map` (None: uniform)."""
+    light map from `bake_light_map` (None: uniform); `fog`: the density grid's lookups (None:
+    uniform fog)."""
     x_ax, y_ax, z_ax = light.frame()
     rel = eye - light.position
     le = jnp.stack([jnp.dot(rel, x_ax), jnp.dot(rel, y_ax), jnp.dot(rel, z_ax)])
@@ -126,8 +156,9 @@ def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: 
     fall = jnp.where(theta <= beam, 1.0, (cut - theta) * inv_ramp)
     # shadow-map and light-map coordinates: the same uv (design.md)
     inv = 0.5 / (safe_z * jnp.tan(cut))
-    u = jax.lax.stop_gradient(0.5 + wx * inv)
-    v = jax.lax.stop_gradient(0.5 + wy * inv)
+    u_raw, v_raw = 0.5 + wx * inv, 0.5 + wy * inv
+    u = jax.lax.stop_gradient(u_raw)
+    v = jax.lax.stop_gradient(v_raw)
     res = depth.shape[0]
     col = jnp.clip(jnp.floor(u * res).astype(jnp.int32), 0, res - 1)
     row = jnp.clip(jnp.floor(v * res).astype(jnp.int32), 0, res - 1)
@@ -139,8 +170,17 @@ def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: 
     c4 = c2 * c2
     c8 = c4 * c4
     phase = K * (1.0 + 9.0 * c8 * c8)
-    path = t_p[..., None] + h[..., None] * (1.0 + s) / c  # s + t
-    weight = jnp.where(lit, fall * phase * jnp.exp(-rho * kappa * path), 0.0)
+    if fog is None:
+        path = t_p[..., None] + h[..., None] * (1.0 + s) / c  # s + t
+        weight = jnp.where(lit, fall * phase * jnp.exp(-rho * kappa * path), 0.0)
+    else:  # d(P) and the optical depths toward the light and the eye replace the lengths s and t
+        t_s = t_p[..., None] + h[..., None] * s / c  # the samples' t (tan phi = s / c)
+        dens = fog.grid.at_xyz(*(eye[i] + t_s * dirs[..., i:i + 1] for i in range(3)))
+        tau_l = fog.light.lookup(2.0 * u_raw - 1.0, 2.0 * v_raw - 1.0, dist)
+        b = jnp.where(active, t1, t0)
+        tau_v = _anchored_view_depth(dens, t_s, t0, b, _view_depth_along(fog.view, eye, dirs, t0),
+                                     _view_depth_along(fog.view, eye, dirs, b))
+        weight = jnp.where(lit, fall * phase * dens * jnp.exp(-rho * kappa * (tau_l + tau_v)), 0.0)
     scale = rho * step / h
     if baked is None:
         return outer(jnp.sum(weight, axis=-1) * scale, light.intensity)
@@ -214,7 +254,8 @@ def primary_hits(scene: ShaftsScene):
 
 def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int | None = 512,
                        surface_shadows: str = "map", chunk: int = 8192, prune: bool = True,
-                       bake: int = _BAKE, return_parts: bool = False) -> Float[Array, "H W 3"]:
+                       bake: int = _BAKE, fog_nodes: int | None = None, return_parts: bool = False
+                       ) -> Float[Array, "H W 3"]:
     """Render `scene` (H, W, 3 linear RGB): surfaces (shadow rays, two-sided Lambert, extinction)
     plus every light's in-scattering by `equiangular_scattering` with `samples` per pixel and light
     (24: about 1 % relative RMS on the five-spot stage; 16: about 2.4 %).
@@ -229,8 +270,9 @@ def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int
     prune: evaluate each light only on the rays that pass through its cone in front of the visible
     surface (`active_rays_map`, in chunks of `chunk` rays); prune=False evaluates every pixel in one
     vectorized pass (same image; a smaller graph for tiny images and tests). bake:
-    light-map refinement factor (`bake_light_map`). return_parts: also return (surface, per-light
-    in-scattering list). Jittable, differentiable; no retrace when light or medium values change.
+    light-map refinement factor (`bake_light_map`). fog_nodes: nodes per side of the optical-depth
+    volumes of a density grid (default `jaxrender.shafts.volume_nodes`). return_parts: also return
+    (surface, per-light in-scattering list). Jittable, differentiable; no retrace when light or medium values change.
     """
     rho, kappa, K = scene.medium.rho, scene.medium.kappa, scene.medium.K
     eye = scene.camera.eye
@@ -240,18 +282,26 @@ def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int
     # stored too: else each surface lookup recasts its texel's ray (XLA fuses the map into the gather)
     maps = materialize(functools.partial(shadow_maps, resolution=res), scene)
     visibility = surface_visibility(scene, maps, surface_shadows)
-    surface = surface_term(scene, points, normals, albedo, t_hit, visibility)
+    # the density grid's optical-depth volumes (stored once, like the maps)
+    fog = None if scene.medium.density is None else materialize(
+        functools.partial(fog_volumes, nodes=fog_nodes), scene)
+    if fog is None:
+        surface = surface_term(scene, points, normals, albedo, t_hit, visibility)
+    else:
+        surface = surface_term(scene, points, normals, albedo, t_hit, visibility, light_depth=fog.light_depth,
+                               view_depth=fog.view_depth(scene, dirs, jnp.where(jnp.isfinite(t_hit), t_hit, 0.0)))
     surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
     bias = scene.render.shadow_bias
 
     per_light, image = [], surface
-    for light, sm in zip(scene.lights, maps):
+    for index, (light, sm) in enumerate(zip(scene.lights, maps)):
         depth = jax.lax.stop_gradient(sm.depth)
         baked = bake_light_map(light, bake=bake)
         reach = light_reach(scene, light)
         t0, t1 = materialize(functools.partial(cone_intervals, scene, light), dirs, surface_t, reach)
+        ray_fog = None if fog is None else fog.for_light(index)
         scatter = functools.partial(equiangular_scattering, light, depth, baked, eye, rho=rho, kappa=kappa, K=K,
-                                    bias=bias, samples=samples)
+                                    bias=bias, samples=samples, fog=ray_fog)
         if not prune:
             per_light.append(scatter(dirs, t0, t1))
         elif return_parts:

@@ -1,0 +1,87 @@
+"""The transmittance lookups of the fast methods in fog with a density grid: one optical-depth
+volume seen from the eye (over the camera's frustum) and one from each spot light (over its
+cone), built once per frame (`fog_volumes`) from the scene's `DensityGrid`.
+
+A sample P on a view ray then needs d(P) (the grid itself), tau_l(P) (the light's volume at P's
+direction from the light and distance) and tau_v(P) (the eye's volume); its in-scattering weight
+is rho d(P) F(a) I exp(-rho kappa (tau_l + tau_v)) / s^2. Volume sizes follow the grid's
+resolution (`volume_nodes`): two nodes per voxel along the longest axis, 16 to 64 per side.
+Why optical-depth volumes in light space and not the anchors' transmittance or froxel volumes,
+and what they cost: docs/fog.md.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from ..lights import SpotLight
+from ._density import DensityGrid, DepthVolume, depth_volume
+from ._scene import ShaftsScene
+
+__all__ = ["FogVolumes", "RayFog", "fog_volumes", "volume_nodes", "light_volume", "view_volume"]
+
+_NODES_PER_VOXEL = 2
+_MIN_NODES, _MAX_NODES = 16, 64
+
+
+def volume_nodes(grid: DensityGrid) -> int:
+    """Nodes per side of the optical-depth volumes for `grid`."""
+    return int(min(max(_NODES_PER_VOXEL * max(grid.shape), _MIN_NODES), _MAX_NODES))
+
+
+def light_volume(grid: DensityGrid, light: SpotLight, nodes: int) -> DepthVolume:
+    """Optical depth from the light over its cone; frustum coordinates (a, b) = 2 uv - 1 of the
+    light map / shadow map."""
+    tan_c = jnp.tan(light.cutoff)
+    return depth_volume(grid, light.position, light.rotation(), tan_c, tan_c, n_u=nodes, n_v=nodes, n_s=nodes)
+
+
+def view_volume(grid: DensityGrid, scene: ShaftsScene, nodes: int) -> DepthVolume:
+    """Optical depth from the eye over the camera's frustum (rows right, up, forward)."""
+    cam = scene.camera
+    right, up, forward = cam.frame()
+    aspect = cam.width / cam.height
+    tan_y = cam.tan_half_fov
+    n_u = max(nodes, int(round(nodes * aspect))) if aspect >= 1 else nodes
+    n_v = nodes if aspect >= 1 else max(nodes, int(round(nodes / aspect)))
+    return depth_volume(grid, cam.eye, jnp.stack([right, up, forward]), tan_y * aspect, tan_y,
+                        n_u=n_u, n_v=n_v, n_s=nodes)
+
+
+class RayFog(eqx.Module):
+    """What one light's samples need of a density grid: the grid, the light's optical-depth
+    volume and the eye's."""
+
+    grid: DensityGrid
+    light: DepthVolume
+    view: DepthVolume
+
+
+class FogVolumes(eqx.Module):
+    """The grid and its optical-depth volumes from the eye and from each light."""
+
+    grid: DensityGrid
+    view: DepthVolume
+    lights: tuple[DepthVolume, ...]
+
+    def view_depth(self, scene: ShaftsScene, dirs, t):
+        """tau from the eye to eye + t dirs (unit `dirs` (*B, 3), t (*B))."""
+        return self.view.lookup_points(scene.camera.eye + t[..., None] * dirs)
+
+    def light_depth(self, index: int, points):
+        """tau from light `index` to `points` (*B, 3)."""
+        return self.lights[index].lookup_points(points)
+
+    def for_light(self, index: int) -> RayFog:
+        return RayFog(self.grid, self.lights[index], self.view)
+
+
+def fog_volumes(scene: ShaftsScene, *, nodes: int | None = None) -> FogVolumes | None:
+    """The volumes of `scene`'s density grid (None in uniform fog). `nodes`: per side (default
+    `volume_nodes`)."""
+    grid = scene.medium.density
+    if grid is None:
+        return None
+    n = volume_nodes(grid) if nodes is None else int(nodes)
+    return FogVolumes(grid, view_volume(grid, scene, n), tuple(light_volume(grid, light, n) for light in scene.lights))
