@@ -26,6 +26,8 @@ the geometry; no NaN gradient at the box's faces, on zero-length segments or whe
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -34,9 +36,32 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..maths import safe_norm
 
-__all__ = ["DensityGrid", "DepthVolume", "depth_volume", "segment_optical_depth", "box_interval"]
+__all__ = ["DensityGrid", "DepthVolume", "depth_volume", "segment_optical_depth", "box_interval", "blend"]
 
 _GAUSS = 0.5 / np.sqrt(3.0)  # two-point Gauss-Legendre nodes at 1/2 -+ this on [0, 1]
+
+
+@jax.custom_vjp
+def blend(flat: Array, index: list[Array], weight: list[Array]) -> Array:
+    """sum_c weight[c] * flat[index[c]]: the corners of a trilinear lookup, one scalar gather each
+    (XLA's CPU backend runs eight flat gathers ~1.5x faster than one gather of 8-vectors). The
+    reverse pass adds into `flat` with ONE scatter of all corners (eight, one per corner, made the
+    gradient of a frame compile several times longer)."""
+    return functools.reduce(jnp.add, [w * flat[i] for i, w in zip(index, weight)])
+
+
+def _blend_fwd(flat, index, weight):
+    return blend(flat, index, weight), (flat, index, weight)
+
+
+def _blend_bwd(res, g):
+    flat, index, weight = res
+    idx = jnp.stack(index, axis=-1)
+    d_flat = jnp.zeros_like(flat).at[idx.reshape(-1)].add((jnp.stack(weight, axis=-1) * g[..., None]).reshape(-1))
+    return d_flat, None, [g * flat[i] for i in index]
+
+
+blend.defvjp(_blend_fwd, _blend_bwd)
 
 
 def _axis_weights(c: Array, lo: Array, hi: Array, n: int):
@@ -76,13 +101,13 @@ class DensityGrid(eqx.Module):
         x0, x1, fx, ix = _axis_weights(x, lo[0], hi[0], nx)
         y0, y1, fy, iy = _axis_weights(y, lo[1], hi[1], ny)
         z0, z1, fz, iz = _axis_weights(z, lo[2], hi[2], nz)
-        flat = self.values.reshape((-1,))
-        value = 0.0
+        index, weight = [], []
         for zi, wz in ((z0, 1.0 - fz), (z1, fz)):
             for yi, wy in ((y0, 1.0 - fy), (y1, fy)):
                 row = (zi * ny + yi) * nx
-                value = value + wz * wy * (flat[row + x0] * (1.0 - fx) + flat[row + x1] * fx)
-        return jnp.where(ix & iy & iz, value, 0.0)
+                index += [row + x0, row + x1]
+                weight += [wz * wy * (1.0 - fx), wz * wy * fx]
+        return jnp.where(ix & iy & iz, blend(self.values.reshape((-1,)), index, weight), 0.0)
 
     def at(self, points: Float[ArrayLike, "*B 3"]) -> Float[Array, "*B"]:
         """d at points (*B, 3)."""
@@ -130,6 +155,7 @@ def _crossings(grid: DensityGrid, p0: Array, delta: Array) -> Array:
     for a, n in enumerate((nx, ny, nz)):
         lo, hi = grid.box_min[a], grid.box_max[a]
         planes = jnp.concatenate([lo[None], lo + (jnp.arange(n, dtype=p0.dtype) + 0.5) * ((hi - lo) / n), hi[None]])
+        planes = planes.reshape((1,) * (p0.ndim - 1) + (n + 2,))
         d = delta[..., a:a + 1]
         moving = jnp.abs(d) > 1e-30
         lam = (planes - p0[..., a:a + 1]) / jnp.where(moving, d, 1.0)
@@ -147,13 +173,10 @@ def segment_optical_depth(grid: DensityGrid, p0: Float[ArrayLike, "*B 3"], p1: F
     delta = p1 - p0
     lam = jnp.sort(_crossings(grid, p0, delta), axis=-1)
     a, b = lam[..., :-1], lam[..., 1:]
-    mid, half = 0.5 * (a + b), (b - a)
-    total = 0.0
-    for offset in (-_GAUSS, _GAUSS):
-        lam_q = mid + offset * half
-        d = grid.at_xyz(*(p0[..., i:i + 1] + lam_q * delta[..., i:i + 1] for i in range(3)))
-        total = total + jnp.sum(d * half, axis=-1) * 0.5
-    return total * safe_norm(delta)
+    mid, width = 0.5 * (a + b), (b - a)
+    lam_q = jnp.concatenate([mid - _GAUSS * width, mid + _GAUSS * width], axis=-1)  # both nodes: one lookup
+    d = grid.at_xyz(*(p0[..., i:i + 1] + lam_q * delta[..., i:i + 1] for i in range(3)))
+    return 0.5 * jnp.sum(d * jnp.concatenate([width, width], axis=-1), axis=-1) * safe_norm(delta)
 
 
 class DepthVolume(eqx.Module):
@@ -186,12 +209,13 @@ class DepthVolume(eqx.Module):
         u0, fu = axis((a + 1.0) * (0.5 * (nu - 1)), nu)
         v0, fv = axis((b + 1.0) * (0.5 * (nv - 1)), nv)
         k0, fk = axis((s - self.s_lo) * ((ns - 1) / (self.s_hi - self.s_lo)), ns)
-        value = 0.0
+        index, weight = [], []
         for vi, wv in ((v0, 1.0 - fv), (v0 + 1, fv)):
             for ui, wu in ((u0, 1.0 - fu), (u0 + 1, fu)):
                 base = (vi * nu + ui) * ns + k0
-                value = value + wv * wu * (flat[base] * (1.0 - fk) + flat[base + 1] * fk)
-        return value
+                index += [base, base + 1]
+                weight += [wv * wu * (1.0 - fk), wv * wu * fk]
+        return blend(flat, index, weight)
 
     def lookup_points(self, points: Float[ArrayLike, "*B 3"]) -> Float[Array, "*B"]:
         """tau from the origin to world points (in front of the origin)."""
@@ -229,11 +253,10 @@ def depth_volume(grid: DensityGrid, origin: Float[ArrayLike, "3"], rotation: Flo
     s_nodes = s_lo + (s_hi - s_lo) * jnp.arange(n_s, dtype=dtype) / (n_s - 1)
     lo = jnp.clip(s_nodes[None, None, :-1], t_in[..., None], t_out[..., None])  # steps clipped to the box
     hi = jnp.clip(s_nodes[None, None, 1:], t_in[..., None], t_out[..., None])
-    mid, half = 0.5 * (lo + hi), hi - lo
-    steps = 0.0
-    for offset in (-_GAUSS, _GAUSS):
-        s = mid + offset * half
-        steps = steps + 0.5 * half * grid.at_xyz(*(origin[i] + s * dirs[..., i:i + 1] for i in range(3)))
+    mid, width = 0.5 * (lo + hi), hi - lo
+    s = jnp.stack([mid - _GAUSS * width, mid + _GAUSS * width])  # both Gauss nodes: one lookup
+    d = grid.at_xyz(*(origin[i] + s * dirs[None, ..., i:i + 1] for i in range(3)))
+    steps = 0.5 * width * (d[0] + d[1])
     table = jnp.concatenate([jnp.zeros(steps.shape[:-1] + (1,), dtype), jnp.cumsum(steps, axis=-1)], axis=-1)
     return DepthVolume(table=table, origin=origin, rotation=rotation, tan_x=jnp.asarray(tan_x, dtype),
                        tan_y=jnp.asarray(tan_y, dtype), s_lo=s_lo, s_hi=s_hi)

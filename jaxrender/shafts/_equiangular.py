@@ -95,21 +95,27 @@ def bake_light_map(light: SpotLight, *, bake: int = _BAKE, max_size: int = _BAKE
 
 
 def _view_depth_along(view: DepthVolume, eye: Array, dirs: Array, t: Array) -> Array:
-    return view.lookup_points(eye + t[..., None] * dirs)
+    return view.lookup_points(jnp.broadcast_to(eye, dirs.shape) + t[..., None] * dirs)
 
 
-def _anchored_view_depth(dens: Array, t_s: Array, t0: Array, t1: Array, tau0: Array, tau1: Array) -> Array:
-    """Optical depth from the eye at the samples t_s (*B, S) (sorted, inside [t0, t1]): the
-    trapezoid rule over the samples' densities, started at tau0 = tau(t0) and corrected linearly in
-    t so that it ends at tau1 = tau(t1) (both from the eye's volume)."""
-    first = dens[..., :1] * (t_s[..., :1] - t0[..., None])
-    steps = 0.5 * (dens[..., 1:] + dens[..., :-1]) * (t_s[..., 1:] - t_s[..., :-1])
-    cum = jnp.cumsum(jnp.concatenate([first, steps], axis=-1), axis=-1)
-    total = cum[..., -1] + dens[..., -1] * (t1 - t_s[..., -1])
-    span = t1 - t0
+def _anchored_view_depth(dens: Array, left: Array, right: Array, t_s: Array, e0: Array, e1: Array, tau0: Array,
+                         tau1: Array) -> Array:
+    """Optical depth from the eye at the samples t_s (*B, S) of a view ray: each sample stands for
+    the cell [left, right] of view ray between its neighbours' angle midpoints (the cells tile
+    [e0, e1]); tau0 = tau(e0) plus d times the cells before it and the part of its own cell up to
+    t_s, then corrected linearly in t so that it ends at tau1 = tau(e1) (tau0, tau1 from the
+    eye's volume). For d = 1 this is t_s exactly (the cells telescope), so a grid of ones gives
+    the uniform fog's exp(-rho kappa t) to rounding."""
+    mass = dens * (right - left)
+    n = dens.shape[-1]
+    # prefix sums as a product with a triangular matrix: XLA's CPU cumsum over a short minor axis
+    # costs ~25 ns per element, the matrix product ~1 ns
+    before = mass @ jnp.triu(jnp.ones((n, n), dens.dtype), 1)
+    total = jnp.sum(mass, axis=-1)
+    span = e1 - e0
     ok = span > 0
-    frac = (t_s - t0[..., None]) / jnp.where(ok, span, 1.0)[..., None]
-    return tau0[..., None] + cum + frac * jnp.where(ok, tau1 - tau0 - total, 0.0)[..., None]
+    frac = (t_s - e0[..., None]) / jnp.where(ok, span, 1.0)[..., None]
+    return tau0[..., None] + before + dens * (t_s - left) + frac * jnp.where(ok, tau1 - tau0 - total, 0.0)[..., None]
 
 
 def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: Float[Array, "N N 3"] | None,
@@ -175,11 +181,22 @@ def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: 
         weight = jnp.where(lit, fall * phase * jnp.exp(-rho * kappa * path), 0.0)
     else:  # d(P) and the optical depths toward the light and the eye replace the lengths s and t
         t_s = t_p[..., None] + h[..., None] * s / c  # the samples' t (tan phi = s / c)
-        dens = fog.grid.at_xyz(*(eye[i] + t_s * dirs[..., i:i + 1] for i in range(3)))
+        # stored once: the density feeds both the view depth's matrix product and the weight, and
+        # XLA's CPU fusion would otherwise redo its eight gathers in each
+        dens = materialize(lambda g, ts: g.at_xyz(*(eye[i] + ts * dirs[..., i:i + 1] for i in range(3))), fog.grid, t_s)
         tau_l = fog.light.lookup(2.0 * u_raw - 1.0, 2.0 * v_raw - 1.0, dist)
-        b = jnp.where(active, t1, t0)
-        tau_v = _anchored_view_depth(dens, t_s, t0, b, _view_depth_along(fog.view, eye, dirs, t0),
-                                     _view_depth_along(fog.view, eye, dirs, b))
+        # the sample's cell of view ray: t at its angle -+ step/2 (tan of a sum)
+        ch, sh = _cos_sin(0.5 * step)
+        ch, sh = ch[..., None], sh[..., None]
+        hh, tp = h[..., None], t_p[..., None]
+        left = tp + hh * (s * ch - c * sh) / jnp.maximum(c * ch + s * sh, 1e-7)
+        right = tp + hh * (s * ch + c * sh) / jnp.maximum(c * ch - s * sh, 1e-7)
+        c0, s0 = _cos_sin(phi0)
+        c1, s1 = _cos_sin(phi1)
+        e0 = t_p + h * s0 / jnp.maximum(c0, 1e-7)
+        e1 = t_p + h * s1 / jnp.maximum(c1, 1e-7)
+        ends = _view_depth_along(fog.view, eye, jnp.stack([dirs, dirs]), jnp.stack([e0, e1]))  # one lookup
+        tau_v = _anchored_view_depth(dens, left, right, t_s, e0, e1, ends[0], ends[1])
         weight = jnp.where(lit, fall * phase * dens * jnp.exp(-rho * kappa * (tau_l + tau_v)), 0.0)
     scale = rho * step / h
     if baked is None:

@@ -5,7 +5,7 @@ cone), built once per frame (`fog_volumes`) from the scene's `DensityGrid`.
 A sample P on a view ray then needs d(P) (the grid itself), tau_l(P) (the light's volume at P's
 direction from the light and distance) and tau_v(P) (the eye's volume); its in-scattering weight
 is rho d(P) F(a) I exp(-rho kappa (tau_l + tau_v)) / s^2. Volume sizes follow the grid's
-resolution (`volume_nodes`): two nodes per voxel along the longest axis, 16 to 64 per side.
+resolution (`volume_nodes`): one node per voxel along the longest axis, 24 to 64 per side.
 Why optical-depth volumes in light space and not the anchors' transmittance or froxel volumes,
 and what they cost: docs/fog.md.
 """
@@ -21,8 +21,8 @@ from ._scene import ShaftsScene
 
 __all__ = ["FogVolumes", "RayFog", "fog_volumes", "volume_nodes", "light_volume", "view_volume"]
 
-_NODES_PER_VOXEL = 2
-_MIN_NODES, _MAX_NODES = 16, 64
+_NODES_PER_VOXEL = 1
+_MIN_NODES, _MAX_NODES = 24, 64
 
 
 def volume_nodes(grid: DensityGrid) -> int:
@@ -67,7 +67,7 @@ class FogVolumes(eqx.Module):
 
     def view_depth(self, scene: ShaftsScene, dirs, t):
         """tau from the eye to eye + t dirs (unit `dirs` (*B, 3), t (*B))."""
-        return self.view.lookup_points(scene.camera.eye + t[..., None] * dirs)
+        return self.view.lookup_points(jnp.broadcast_to(scene.camera.eye, dirs.shape) + t[..., None] * dirs)
 
     def light_depth(self, index: int, points):
         """tau from light `index` to `points` (*B, 3)."""
