@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
@@ -53,12 +54,12 @@ from ..lights import SpotLight
 from ..maths import atan_nonneg, outer
 from ..textures import bilinear
 from ._density import DepthVolume
-from ._fog import RayFog, fog_volumes
+from ._fog import FogVolumes, RayFog, fog_volumes
 from ._model import FAR, cone_intervals, light_reach, surface_term
 from ._raymarch import surface_visibility
 from ._scene import ShaftsScene, shadow_maps
 
-__all__ = ["render_equiangular", "equiangular_scattering", "bake_light_map", "active_rays_map"]
+__all__ = ["render_equiangular", "equiangular_scattering", "equiangular_ladder", "bake_light_map", "active_rays_map"]
 
 
 _H_MIN = 1e-6  # floor of the ray-to-light distance h (a ray through the light itself)
@@ -106,7 +107,7 @@ def _anchored_view_depth(dens: Array, left: Array, right: Array, t_s: Array, e0:
     t_s, then corrected linearly in t so that it ends at tau1 = tau(e1) (tau0, tau1 from the
     eye's volume). For d = 1 this is t_s exactly (the cells telescope), so a grid of ones gives
     the uniform fog's exp(-rho kappa t) to rounding."""
-    mass = dens * (right - left)
+    mass = dens * (right - left)  # 0 in unused slots (dens masked by the caller)
     n = dens.shape[-1]
     # prefix sums as a product with a triangular matrix: XLA's CPU cumsum over a short minor axis
     # costs ~25 ns per element, the matrix product ~1 ns
@@ -121,12 +122,13 @@ def _anchored_view_depth(dens: Array, left: Array, right: Array, t_s: Array, e0:
 def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: Float[Array, "N N 3"] | None,
                            eye: Float[Array, "3"], dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"],
                            t1: Float[Array, "*B"], rho, kappa, K, bias, *, samples: int,
-                           fog: RayFog | None = None) -> Float[Array, "*B 3"]:
+                           fog: RayFog | None = None, count=None) -> Float[Array, "*B 3"]:
     """In-scattered radiance of one spot light along view rays eye + t dirs, t in [t0, t1]
     (eq. 2, `samples` midpoints equally spaced in the angle seen from the light; see the module
     docstring). `depth`: the light's shadow map (distances, nearest texel + `bias`); `baked`: the
     light map from `bake_light_map` (None: uniform); `fog`: the density grid's lookups (None:
-    uniform fog)."""
+    uniform fog). `count` (a traced integer <= samples): use only the first `count` of `samples`
+    slots, spaced for `count` (one compiled function for many counts, as `choose_counts` needs)."""
     x_ax, y_ax, z_ax = light.frame()
     rel = eye - light.position
     le = jnp.stack([jnp.dot(rel, x_ax), jnp.dot(rel, y_ax), jnp.dot(rel, z_ax)])
@@ -140,8 +142,9 @@ def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: 
     active = t1 > t0
     phi0 = _signed_atan(t0 - t_p, h)
     phi1 = _signed_atan(jnp.where(active, t1, t0) - t_p, h)
-    step = (phi1 - phi0) / samples
+    step = (phi1 - phi0) / (samples if count is None else count)
     frac = (jnp.arange(samples, dtype=dirs.dtype) + 0.5).reshape((1,) * phi0.ndim + (samples,))
+    active_s = active[..., None] if count is None else active[..., None] & (frac < count)  # slots in use
     phi = phi0[..., None] + step[..., None] * frac  # (*B, S)
     c, s = _cos_sin(phi)
     c = jnp.maximum(c, 1e-7)
@@ -170,7 +173,7 @@ def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: 
     row = jnp.clip(jnp.floor(v * res).astype(jnp.int32), 0, res - 1)
     occ = depth.reshape((-1,))[row * res + col]
     dist = h[..., None] / c
-    lit = front & (theta < cut) & (jax.lax.stop_gradient(dist) <= occ + bias) & active[..., None]
+    lit = front & (theta < cut) & (jax.lax.stop_gradient(dist) <= occ + bias) & active_s
     # smooth part: rho F(alpha) exp(-sigma (s + t)) dphi / h, cos(alpha) = -sin(phi)
     c2 = 0.5 * (1.0 - s)
     c4 = c2 * c2
@@ -184,6 +187,8 @@ def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: 
         # stored once: the density feeds both the view depth's matrix product and the weight, and
         # XLA's CPU fusion would otherwise redo its eight gathers in each
         dens = materialize(lambda g, ts: g.at_xyz(*(eye[i] + ts * dirs[..., i:i + 1] for i in range(3))), fog.grid, t_s)
+        if count is not None:
+            dens = jnp.where(active_s, dens, 0.0)
         tau_l = fog.light.lookup(2.0 * u_raw - 1.0, 2.0 * v_raw - 1.0, dist)
         # the sample's cell of view ray: t at its angle -+ step/2 (tan of a sum)
         ch, sh = _cos_sin(0.5 * step)
@@ -269,6 +274,69 @@ def primary_hits(scene: ShaftsScene):
     return dirs, t_hit, normals, albedo, hit_point(eye, dirs, t_hit, far=FAR)
 
 
+class _Frame(eqx.Module):
+    """What every light's in-scattering shares: primary rays and hits, shadow maps, a density
+    grid's volumes, the surfaces' shading."""
+
+    dirs: Array
+    surface_t: Array
+    maps: tuple
+    fog: FogVolumes | None
+    surface: Array
+
+
+def _frame(scene: ShaftsScene, *, shadow_map: int | None, surface_shadows: str, fog_nodes: int | None) -> _Frame:
+    # stored once: XLA on CPU otherwise recasts the primary rays inside each of their consumers
+    dirs, t_hit, normals, albedo, points = materialize(primary_hits, scene)
+    res = scene.render.shadow_map if shadow_map is None else int(shadow_map)
+    # stored too: else each surface lookup recasts its texel's ray (XLA fuses the map into the gather)
+    maps = materialize(functools.partial(shadow_maps, resolution=res), scene)
+    visibility = surface_visibility(scene, maps, surface_shadows)
+    # the density grid's optical-depth volumes (stored once, like the maps)
+    fog = None if scene.medium.density is None else materialize(
+        functools.partial(fog_volumes, nodes=fog_nodes), scene)
+    if fog is None:
+        surface = surface_term(scene, points, normals, albedo, t_hit, visibility)
+    else:
+        surface = surface_term(scene, points, normals, albedo, t_hit, visibility, light_depth=fog.light_depth,
+                               view_depth=fog.view_depth(scene, dirs, jnp.where(jnp.isfinite(t_hit), t_hit, 0.0)))
+    surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
+    return _Frame(dirs, surface_t, maps, fog, surface)
+
+
+def _light_scatters(scene: ShaftsScene, frame: _Frame, *, samples: int, bake: int):
+    """(scatter(dirs, t0, t1), t0, t1) of every light: its `equiangular_scattering` and cone intervals."""
+    rho, kappa, K = scene.medium.rho, scene.medium.kappa, scene.medium.K
+    for index, (light, sm) in enumerate(zip(scene.lights, frame.maps)):
+        depth = jax.lax.stop_gradient(sm.depth)
+        baked = bake_light_map(light, bake=bake)
+        reach = light_reach(scene, light)
+        t0, t1 = materialize(functools.partial(cone_intervals, scene, light), frame.dirs, frame.surface_t, reach)
+        ray_fog = None if frame.fog is None else frame.fog.for_light(index)
+        yield (functools.partial(equiangular_scattering, light, depth, baked, scene.camera.eye, rho=rho, kappa=kappa,
+                                 K=K, bias=scene.render.shadow_bias, samples=samples, fog=ray_fog), t0, t1)
+
+
+def equiangular_ladder(scene: ShaftsScene, counts: tuple[int, ...], reference: int, *, shadow_map: int | None = 512,
+                       bake: int = _BAKE, fog_nodes: int | None = None, **_unused
+                       ) -> tuple[Float[Array, "C H W 3"], Float[Array, "H W 3"]]:
+    """The in-scattered light of `scene` at each sample count of `counts` (one compiled kernel:
+    `max(counts)` slots, the first n of them used, under `lax.map`) and at `reference` samples,
+    as `render_equiangular` renders it, sharing the rays, maps and volumes: what
+    `choose_counts` measures on its proxy. Every ray is evaluated (no pruning: proxies are small)."""
+    frame = _frame(scene, shadow_map=shadow_map, surface_shadows="map", fog_nodes=fog_nodes)
+    capacity = max(counts)
+
+    def at_count(n):
+        return sum(scatter(frame.dirs, t0, t1, count=n)
+                   for scatter, t0, t1 in _light_scatters(scene, frame, samples=capacity, bake=bake))
+
+    ladder = jax.lax.map(at_count, jnp.asarray(counts, dtype=frame.dirs.dtype))
+    ref = sum(scatter(frame.dirs, t0, t1) for scatter, t0, t1 in _light_scatters(scene, frame, samples=reference,
+                                                                                bake=bake))
+    return ladder, ref
+
+
 def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int | None = 512,
                        surface_shadows: str = "map", chunk: int = 8192, prune: bool = True,
                        bake: int = _BAKE, fog_nodes: int | None = None, return_parts: bool = False
@@ -291,40 +359,16 @@ def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int
     volumes of a density grid (default `jaxrender.shafts.volume_nodes`). return_parts: also return
     (surface, per-light in-scattering list). Jittable, differentiable; no retrace when light or medium values change.
     """
-    rho, kappa, K = scene.medium.rho, scene.medium.kappa, scene.medium.K
-    eye = scene.camera.eye
-    # stored once: XLA on CPU otherwise recasts the primary rays inside each of their consumers
-    dirs, t_hit, normals, albedo, points = materialize(primary_hits, scene)
-    res = scene.render.shadow_map if shadow_map is None else int(shadow_map)
-    # stored too: else each surface lookup recasts its texel's ray (XLA fuses the map into the gather)
-    maps = materialize(functools.partial(shadow_maps, resolution=res), scene)
-    visibility = surface_visibility(scene, maps, surface_shadows)
-    # the density grid's optical-depth volumes (stored once, like the maps)
-    fog = None if scene.medium.density is None else materialize(
-        functools.partial(fog_volumes, nodes=fog_nodes), scene)
-    if fog is None:
-        surface = surface_term(scene, points, normals, albedo, t_hit, visibility)
-    else:
-        surface = surface_term(scene, points, normals, albedo, t_hit, visibility, light_depth=fog.light_depth,
-                               view_depth=fog.view_depth(scene, dirs, jnp.where(jnp.isfinite(t_hit), t_hit, 0.0)))
-    surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
-    bias = scene.render.shadow_bias
-
-    per_light, image = [], surface
-    for index, (light, sm) in enumerate(zip(scene.lights, maps)):
-        depth = jax.lax.stop_gradient(sm.depth)
-        baked = bake_light_map(light, bake=bake)
-        reach = light_reach(scene, light)
-        t0, t1 = materialize(functools.partial(cone_intervals, scene, light), dirs, surface_t, reach)
-        ray_fog = None if fog is None else fog.for_light(index)
-        scatter = functools.partial(equiangular_scattering, light, depth, baked, eye, rho=rho, kappa=kappa, K=K,
-                                    bias=bias, samples=samples, fog=ray_fog)
+    frame = _frame(scene, shadow_map=shadow_map, surface_shadows=surface_shadows, fog_nodes=fog_nodes)
+    per_light, image = [], frame.surface
+    for scatter, t0, t1 in _light_scatters(scene, frame, samples=samples, bake=bake):
         if not prune:
-            per_light.append(scatter(dirs, t0, t1))
+            per_light.append(scatter(frame.dirs, t0, t1))
         elif return_parts:
-            per_light.append(active_rays_map(scatter, dirs, t0, t1, chunk=chunk))
+            per_light.append(active_rays_map(scatter, frame.dirs, t0, t1, chunk=chunk))
         else:  # one buffer for all lights (no per-light image to add up)
-            image = active_rays_map(scatter, dirs, t0, t1, chunk=chunk, into=image)
+            image = active_rays_map(scatter, frame.dirs, t0, t1, chunk=chunk, into=image)
+    surface = frame.surface
 
     if per_light:
         image = surface + sum(per_light)

@@ -223,6 +223,7 @@ class LightPlanes(eqx.Module):
     resolution: int = eqx.field(static=True)
     uniform_map: bool = eqx.field(static=True)
     fog: RayFog | None = None             # a density grid's lookups (None: uniform fog)
+    sub_count: Int[Array, ""] | None = None  # sub-planes in use when counts are traced (None: cfg.subplanes)
 
 
 class TileRays(eqx.Module):
@@ -253,15 +254,17 @@ class PlaneConfig(eqx.Module):
 
 
 def light_planes(scene: ShaftsScene, view: ViewRays, light: SpotLight, sm: ShadowMap, cfg: PlaneConfig, *,
-                 planes: int, fog: RayFog | None = None) -> LightPlanes:
-    """Planes spanning the view depths the light's cone reaches, and the light's parameters."""
+                 planes: int, fog: RayFog | None = None, counts=None) -> LightPlanes:
+    """Planes spanning the view depths the light's cone reaches, and the light's parameters.
+    `counts`: traced (planes, sub-planes) in use, at most `planes` and cfg.subplanes (the slots)."""
     dtype = view.dirs.dtype
     reach = light_reach(scene, light)
     r_near, r_far = cone_depth_range(light, reach, view.eye, view.forward)
-    dr = (r_far - r_near) / planes
+    n_used, m_used = (planes, cfg.subplanes) if counts is None else counts
+    dr = (r_far - r_near) / n_used
     plane_ids = jnp.arange(cfg.n_chunks * cfg.chunk)
     r = r_near + (plane_ids.astype(dtype) + 0.5) * dr  # planes past `planes` are masked
-    sub = ((jnp.arange(cfg.subplanes, dtype=dtype) + 0.5) / cfg.subplanes - 0.5)
+    sub = ((jnp.arange(cfg.subplanes, dtype=dtype) + 0.5) / m_used - 0.5)
     depths = r[:, None] + sub[None, :] * dr
     lx, ly, lz = light.frame()
     rel_eye = view.eye - light.position
@@ -280,12 +283,13 @@ def light_planes(scene: ShaftsScene, view: ViewRays, light: SpotLight, sm: Shado
     return LightPlanes(
         position=light.position, frame=jnp.stack([lx, ly, lz]),
         local_eye=jnp.stack([_dot(rel_eye, lx), _dot(rel_eye, ly), _dot(rel_eye, lz)]),
-        r=r, on=plane_ids < planes, r_near=r_near, dr=dr, depths=depths, grids=grids,
+        r=r, on=plane_ids < n_used, r_near=r_near, dr=dr, depths=depths, grids=grids,
         tan_cutoff=jnp.tan(cut), cutoff=cut, beam=beam,
         inv_ramp=jnp.where(ramp_w > 1e-9, 1.0 / jnp.where(ramp_w > 1e-9, ramp_w, 1.0), 0.0),
         light_map=lmap / map_max, scale_rgb=light.intensity * map_max,
         depth=jax.lax.stop_gradient(sm.depth).reshape((-1,)), shadow_bias=scene.render.shadow_bias,
-        resolution=sm.resolution, uniform_map=lmap.shape[0] * lmap.shape[1] == 1, fog=fog)
+        resolution=sm.resolution, uniform_map=lmap.shape[0] * lmap.shape[1] == 1, fog=fog,
+        sub_count=None if counts is None else jnp.asarray(m_used))
 
 
 def tile_rays(view: ViewRays, lp: LightPlanes, per_pixel: Array, cfg: PlaneConfig, row0, col0) -> TileRays:
@@ -363,9 +367,13 @@ def chunk_scattering(view: ViewRays, lp: LightPlanes, cfg: PlaneConfig, rays: Ti
     occ = lp.depth[row * res + col]
     ok = (front & (theta < lp.cutoff) & (s <= occ + lp.shadow_bias) & (tau < rays.surface_t[None, None])
           & on_c[:, None, None, None])
+    if lp.sub_count is not None:  # traced counts: the sub-plane slots in use
+        ok = ok & (jnp.arange(cfg.subplanes) < lp.sub_count)[None, :, None, None]
     ok = checkpoint_name(ok, "shaft_visible")  # saved for reverse mode (see `light_scattering`)
     weight = jnp.where(ok, fall, 0.0)
     dt = lp.dr * tau_unit  # (ty, tx)
+    if lp.sub_count is not None:
+        weight = weight * (cfg.subplanes / lp.sub_count)  # the means below divide by the slots
     if lp.uniform_map and not B:
         # one colour for the whole cone: sum the planes in one channel, colour at the end
         return outer(sum_short(sum_short(weight, 1) * g, 0) * (dt / cfg.subplanes), lp.scale_rgb)
@@ -459,8 +467,8 @@ def view_rays(scene: ShaftsScene, tiling: Tiling, mesh: tuple[int, int]) -> View
 def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, quantize_bits: int = 0,
                   mesh: tuple[int, int] = (15, 10), g_per_pixel: bool = False, tables: bool = True,
                   tile: tuple[int, int] = (16, 32), plane_chunk: int = 6, prune: bool = True,
-                  surface_shadows: str = "map", fog_nodes: int | None = None, return_parts: bool = False
-                  ) -> Float[Array, "H W 3"]:
+                  surface_shadows: str = "map", fog_nodes: int | None = None, return_parts: bool = False,
+                  maps: tuple[ShadowMap, ...] | None = None, counts=None) -> Float[Array, "H W 3"]:
     """Render `scene` (H, W, 3 linear RGB) with the sample-plane method (see module docstring).
 
     planes, subplanes: n and m of the paper (default 30 x 6). quantize_bits: 0 = float, 8 = the
@@ -474,12 +482,16 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
     surface_shadows: "map" (shadow maps with a slope-scaled bias, as the hardware does) or "rays"
     (exact shadow rays, as the ray march). fog_nodes: nodes per side of a density grid's optical-depth
     volumes (default `volume_nodes`). return_parts: also return (surface, per-light in-scattering list).
+    maps: the lights' shadow maps when several renders share them (default: rendered here at the
+    scene's `render.shadow_map`). counts: traced (planes, sub-planes) in use, at most `planes` and
+    `subplanes`, which then only size the slots (one compiled function for many counts, as
+    `choose_counts` needs).
     """
     if quantize_bits and (not tables or g_per_pixel):
         raise ValueError("quantize_bits > 0 emulates the hardware: it needs tables=True and g_per_pixel=False")
     B = int(quantize_bits)
     cam = scene.camera
-    maps = shadow_maps(scene, scene.render.shadow_map)
+    maps = shadow_maps(scene, scene.render.shadow_map) if maps is None else maps
     visibility = surface_visibility(scene, maps, surface_shadows)
     dirs = cam.primary_rays()
     dtype = dirs.dtype
@@ -503,7 +515,8 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
                       -(-planes // chunk), B, g_per_pixel)
     view = view_rays(scene, tiling, mesh)
     per_light = [light_scattering(scene, view, light_planes(scene, view, light, sm, cfg, planes=planes,
-                                                            fog=None if fog is None else fog.for_light(index)),
+                                                            fog=None if fog is None else fog.for_light(index),
+                                                            counts=counts),
                                   light, cfg, surface_t, prune=prune)
                  for index, (light, sm) in enumerate(zip(scene.lights, maps))]
     image = frame + sum(per_light)
