@@ -67,8 +67,8 @@ class CountChoice:
     def describe(self) -> str:
         counts = ", ".join(f"{k} {v}" for k, v in self.options.items())
         return (f"error target {100 * self.target_error:g} %: {self.method} with {counts} (predicted "
-                f"{100 * self.predicted_error:.2f} % on a {self.proxy_size[0]} x {self.proxy_size[1]} proxy, "
-                f"estimated in {self.seconds:.2f} s)")
+                f"{100 * self.predicted_error:.2f} % on a {self.proxy_size[0]} x {self.proxy_size[1]} proxy; "
+                f"estimate {self.seconds:.2f} s, its compilation included on first use)")
 
 
 def proxy_scene(scene: ShaftsScene, rays: int = PROXY_RAYS) -> ShaftsScene:

@@ -3,9 +3,11 @@ its extensions in docs/shafts_scene.md: `render.spp`, `medium.density`).
 
 `medium.density` = {"grid": "density.npy", "box_min": [x, y, z], "box_max": [x, y, z]}: a float
 .npy array (nz, ny, nx) of values >= 0 at voxel centres, relative to the scene file
-(`jaxrender.shafts.DensityGrid`). Every problem of a file is reported at once (`jaxrender.io.InputErrors`, read by `jaxrender.io.Fields`),
-one line each: `scene.json: spotlights[0].cutoff_deg: expected a number, got 'wide'`; unknown keys are
-problems too. A medium with 8*pi*K > kappa (scattering more than it extinguishes) gives a
+(`jaxrender.shafts.DensityGrid`).
+
+Every problem of a file is reported at once (`jaxrender.io.InputErrors`, read by
+`jaxrender.io.Fields`), one line each: `scene.json: spotlights[0].cutoff_deg: expected a number,
+got 'wide'`; unknown keys are problems too. A medium with 8*pi*K > kappa (scattering more than it extinguishes) gives a
 `ShaftsSceneWarning`.
 """
 
