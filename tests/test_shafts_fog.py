@@ -354,3 +354,45 @@ def test_scene_file_grid_is_read_relative_to_the_file(tmp_path):
     del plain["medium"]["density"]
     (tmp_path / "p.json").write_text(json.dumps(plain))
     assert load_shafts_scene(tmp_path / "p.json").medium.density is None
+
+
+# -- sample counts from an error target -------------------------------------------------------------------
+_TARGET = 0.04
+_TARGET_SLACK = 1.25  # the issue's 2.5 % for a 2 % target: the fixed parts' error is not in the estimate
+
+
+def test_target_error_chooses_counts_that_reach_it():
+    """render(target_error=E): the counts chosen on the proxy (here the scene itself: it is small)
+    keep the in-scattered light within 1.25 E of the ray march, and fewer samples would not do."""
+    from jaxrender.shafts import choose_counts, render
+
+    lmap = np.random.default_rng(0).uniform(0.2, 1.0, (6, 6, 3))
+    scene = _scene(_grid(), light_map=lmap)
+    _, ref = _RM(scene)
+    _, (_, fog) = render(scene, target_error=_TARGET, shadow_map=64, prune=False, return_parts=True)
+    assert _rel(fog[0], ref) <= _TARGET_SLACK * _TARGET, _rel(fog[0], ref)
+    choice = choose_counts(scene, _TARGET, shadow_map=64)
+    assert choice.reached and 2 <= choice.options["samples"] < 64
+    assert [n for n, _ in choice.measured] == [6, 12, 24]
+    errors = [e for _, e in choice.measured]
+    assert errors[0] > errors[-1]  # the ladder's errors fall with the count
+
+
+def test_cli_error_option(tmp_path, capsys):
+    """`jaxrender shafts SCENE --error E` prints its choice and renders; bad uses are one line, exit 2."""
+    from jaxrender.app.cli.programs import jaxrender_main as main
+    from jaxrender.io import read_image
+
+    np.save(tmp_path / "grid.npy", np.random.default_rng(1).uniform(0.5, 1.5, (2, 3, 4)))
+    d = _scene_file(tmp_path, {"grid": "grid.npy", "box_min": [-3, -1, -3], "box_max": [3, 4, 3]})
+    d["camera"].update(width=8, height=6)
+    (tmp_path / "s.json").write_text(json.dumps(d))
+    for bad in (["--error", "2"], ["--error", "0.02", "--samples", "8"]):
+        assert main(["shafts", str(tmp_path / "s.json"), "--out", str(tmp_path / "x.exr"), *bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--error" in err[0], err
+    assert main(["shafts", str(tmp_path / "s.json"), "--out", str(tmp_path / "x.exr"), "--error", "0.05"]) == 0
+    line = capsys.readouterr().out.strip()
+    assert line.startswith("error target 5 %: equiangular with samples "), line
+    image = read_image(tmp_path / "x.exr")
+    assert image.shape[:2] == (6, 8) and np.all(np.isfinite(image)) and image.max() > 0

@@ -8,8 +8,9 @@ The estimate renders a proxy of the scene, the same camera and lights at ~`proxy
 and measures each count's relative RMS against the reference. A method's error comes from the
 quadrature along the rays (it falls as the counts grow) while its fixed parts (shadow-map and
 light-map texels, a grid's volumes) change little with them, so:
-- equiangular and raymarch (`samples`): the error at counts 6, 12, 24 against 64, interpolated
-  in log-log (extrapolated with the outer slopes); the smallest count predicted to reach E;
+- equiangular and raymarch (`samples`): the error at counts 6, 12, 24 against 64, fitted by
+  e = c n^-p (p from log-log least squares within [0.5, 2], c the envelope of the three
+  measurements); the smallest count predicted to reach E;
 - planes (`planes`, `subplanes`): e^2 = a / n^4 + b / (n m)^2 fitted (non-negative least
   squares) to the errors at (6, 2), (12, 2), (6, 8), (12, 8), (24, 4) against (64, 8) (the pairs
   share one compiled kernel): the smooth g sampled on n planes, shadows and light maps on n m
@@ -72,9 +73,10 @@ class CountChoice:
 
 
 def proxy_scene(scene: ShaftsScene, rays: int = PROXY_RAYS) -> ShaftsScene:
-    """The scene seen by the same camera at about `rays` pixels (aspect kept, at least 8 x 6)."""
+    """The scene seen by the same camera at about `rays` pixels (aspect kept; a small image gets
+    a larger proxy: the error is a statistic over rays, and a few dozen estimate it badly)."""
     cam = scene.camera
-    scale = min(1.0, math.sqrt(rays / (cam.width * cam.height)))
+    scale = math.sqrt(rays / (cam.width * cam.height))
     return scene.with_size(max(8, round(cam.width * scale)), max(6, round(cam.height * scale)))
 
 
@@ -117,29 +119,22 @@ def _errors(images, reference) -> list[float]:
     return [float(np.linalg.norm(np.asarray(x, np.float64) - ref) / norm) for x in images]
 
 
-def _loglog(counts, errors, n: float) -> float:
-    """Error at count n: piecewise linear in (log n, log e) through the measurements, the outer
-    slopes extended (the last one at least as steep as 1/sqrt(n))."""
+def _power_law(counts, errors) -> tuple[float, float]:
+    """(c, p) of e = c n^-p: p from a least-squares fit in log-log (clamped to [0.5, 2]: between
+    shadow edges, 1/n, and smooth integrands, 1/n^2), c raised so that the curve lies on or above
+    every measurement (a proxy's few thousand rays make the errors a little noisy)."""
     x = np.log(np.asarray(counts, float))
     y = np.log(np.maximum(np.asarray(errors, float), 1e-12))
-    ln = math.log(n)
-    if ln <= x[0]:
-        slope = (y[1] - y[0]) / (x[1] - x[0])
-        return float(np.exp(y[0] + min(slope, 0.0) * (ln - x[0])))
-    if ln >= x[-1]:
-        slope = min((y[-1] - y[-2]) / (x[-1] - x[-2]), -0.5)
-        return float(np.exp(y[-1] + slope * (ln - x[-1])))
-    return float(np.exp(np.interp(ln, x, y)))
+    p = float(np.clip(-np.polyfit(x, y, 1)[0], 0.5, 2.0))
+    return float(np.max(np.exp(y + p * x))), p
 
 
 def _choose_samples(counts, errors, target):
     if max(errors) == 0.0:
         return 4, 0.0
-    for n in range(2, _MAX_SAMPLES + 1):
-        predicted = _loglog(counts, errors, n)
-        if predicted <= target:
-            return n, predicted
-    return _MAX_SAMPLES, _loglog(counts, errors, _MAX_SAMPLES)
+    c, p = _power_law(counts, errors)
+    n = min(max(math.ceil((c / target) ** (1.0 / p)), 2), _MAX_SAMPLES)
+    return n, c * n ** -p
 
 
 def _choose_planes(pairs, errors, target):
