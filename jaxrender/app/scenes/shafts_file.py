@@ -1,5 +1,5 @@
 """Loading and validating light-shaft scene files (design.md, "Scene file for light shafts", and
-its extensions in docs/shafts_scene.md: `render.spp`, `medium.density`).
+its extensions: `render.spp` (README) and `medium.density` (docs/fog.md)).
 
 `medium.density` = {"grid": "density.npy", "box_min": [x, y, z], "box_max": [x, y, z]}: a float
 .npy array (nz, ny, nx) of values >= 0 at voxel centres, relative to the scene file
