@@ -17,9 +17,9 @@ class Medium(eqx.Module):
     """Fog (paper 000): density `rho`, extinction coefficient `kappa`, phase scale `K`, and
     optionally a `density` grid d(x) (issue 24, `DensityGrid`) that varies it in space.
 
-    Extinction per unit length is rho*kappa*d(x); scattering per unit length per steradian is
-    rho*d(x)*F(a) with F(a) = K (1 + 9 cos^16(a/2)); d = 1 everywhere without a grid (uniform fog),
-    d = 0 outside the grid's box with one. (The image depends on rho*kappa*d and rho*K*d only.)
+    Extinction per unit length is `rho*kappa*d(x)`; scattering per unit length per steradian is
+    `rho*d(x)*F(a)` with `F(a) = K (1 + 9 cos^16(a/2))`; d = 1 everywhere without a grid (uniform
+    fog), d = 0 outside the grid's box with one. (The image depends on `rho*kappa*d` and `rho*K*d` only.)
     """
 
     rho: Float[Array, ""]

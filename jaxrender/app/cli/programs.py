@@ -31,18 +31,26 @@ SIMS_COMMANDS = {
 }
 
 
+JAXRENDER_DESCRIPTION = "`jaxrender` command line: a thin layer over the public API."
+FITTING_DESCRIPTION = "`fitting` command line: BTF capture synthesis, fitting, pyramid, relighting and reports."
+SIMS_DESCRIPTION = "`sims` command line: the Nishimori-Ouchi ripple and dune automata."
+COMMAND_TABLES = {  # program: (description, subcommands); docs/_hooks/reference.py writes the CLI pages from it
+    "jaxrender": (JAXRENDER_DESCRIPTION, JAXRENDER_COMMANDS),
+    "fitting": (FITTING_DESCRIPTION, FITTING_COMMANDS),
+    "sims": (SIMS_DESCRIPTION, SIMS_COMMANDS),
+}
+
+
 def jaxrender_main(argv=None) -> int:
-    return run_cli("jaxrender", "`jaxrender` command line: a thin layer over the public API.", JAXRENDER_COMMANDS, argv)
+    return run_cli("jaxrender", JAXRENDER_DESCRIPTION, JAXRENDER_COMMANDS, argv)
 
 
 def fitting_main(argv=None) -> int:
-    return run_cli("fitting",
-                   "`fitting` command line: BTF capture synthesis, fitting, pyramid, relighting and reports.",
-                   FITTING_COMMANDS, argv)
+    return run_cli("fitting", FITTING_DESCRIPTION, FITTING_COMMANDS, argv)
 
 
 def sims_main(argv=None) -> int:
-    return run_cli("sims", "`sims` command line: the Nishimori-Ouchi ripple and dune automata.", SIMS_COMMANDS, argv)
+    return run_cli("sims", SIMS_DESCRIPTION, SIMS_COMMANDS, argv)
 
 
 PROGRAMS = {"jaxrender": jaxrender_main, "fitting": fitting_main, "sims": sims_main}

@@ -40,7 +40,7 @@ RENDER_DEFAULTS = {"shadow_map": 1024, "shadow_bias": 0.002, "table_size": 256, 
 
 
 class ShaftsSceneWarning(UserWarning):
-    """A scene that loads but is physically suspicious (e.g. 8*pi*K > kappa)."""
+    """A scene that loads but is physically suspicious (e.g. `8*pi*K > kappa`)."""
 
 
 def _parallel(a: np.ndarray, b: np.ndarray) -> bool:
@@ -58,21 +58,27 @@ def check_image_size(width: int, height: int, spp: int = 1, *, source=None) -> N
                                  f"renderer indexes (at most {MAX_SIDE} pixels a side and {MAX_SAMPLES} samples)")
 
 
+def _look_at_ok(f: Fields, origin, target, up, *, origin_name: str, view_name: str) -> bool:
+    """A look-at frame (camera or spot light) exists: target apart from the origin, up not along the view."""
+    if np.linalg.norm(target - origin) == 0:
+        f.problem("target", f"equals {origin_name}")
+        return False
+    if _parallel(up, target - origin):
+        f.problem("up", f"parallel to {view_name}")
+        return False
+    return True
+
+
 def _camera(f: Fields) -> Camera | None:
     f.known(("eye", "target", "up", "fov_y_deg", "width", "height"))
     eye, target = f.vector("eye"), f.vector("target")
     up = f.vector("up", default=[0.0, 1.0, 0.0])
     fov = f.number("fov_y_deg", lo=0.0, hi=179.0, lo_open=True)
     width, height = f.integer("width", lo=1, hi=MAX_SIDE), f.integer("height", lo=1, hi=MAX_SIDE)
-    if eye is None or target is None or up is None:
+    if eye is None or target is None or up is None or not _look_at_ok(
+            f, eye, target, up, origin_name="camera.eye", view_name="the viewing direction"):
         return None
-    if np.linalg.norm(target - eye) == 0:
-        f.problem("target", "equals camera.eye")
-    elif _parallel(up, target - eye):
-        f.problem("up", "parallel to the viewing direction")
-    elif None not in (fov, width, height):
-        return Camera(eye, target, up, fov, width=width, height=height)
-    return None
+    return None if None in (fov, width, height) else Camera(eye, target, up, fov, width=width, height=height)
 
 
 def _grid_values(f: Fields, base_dir: Path) -> np.ndarray | None:
@@ -184,16 +190,13 @@ def _spotlight(f: Fields, base_dir: Path) -> SpotLight | None:
     beam = f.number("beam_width_deg", default=None, lo=0.0, hi=cutoff)
     intensity = f.rgb("intensity")
     light_map = _light_map(f, base_dir) if f.raw("light_map", default=None) is not None else None
-    if position is None or target is None or up is None:
+    if position is None or target is None or up is None or not _look_at_ok(
+            f, position, target, up, origin_name="the light's position", view_name="the light's direction"):
         return None
-    if np.linalg.norm(target - position) == 0:
-        f.problem("target", "equals the light's position")
-    elif _parallel(up, target - position):
-        f.problem("up", "parallel to the light's direction")
-    elif cutoff is not None and intensity is not None:
-        beam = 0.75 * cutoff if beam is None else beam  # Mitsuba's default
-        return SpotLight(position, target, up, cutoff, beam, intensity, light_map)
-    return None
+    if cutoff is None or intensity is None:
+        return None
+    beam = 0.75 * cutoff if beam is None else beam  # Mitsuba's default
+    return SpotLight(position, target, up, cutoff, beam, intensity, light_map)
 
 
 _OBJECT_FIELDS = {"sphere": ("type", "center", "radius", "albedo"), "quad": ("type", "center", "u", "v", "albedo")}
