@@ -110,7 +110,7 @@ class DensityGrid(eqx.Module):
         return jnp.where(ix & iy & iz, blend(self.values.reshape((-1,)), index, weight), 0.0)
 
     def at(self, points: Float[ArrayLike, "*B 3"]) -> Float[Array, "*B"]:
-        """d at points (*B, 3)."""
+        """d at points of shape `(*B, 3)`."""
         points = jnp.asarray(points)
         return self.at_xyz(points[..., 0], points[..., 1], points[..., 2])
 

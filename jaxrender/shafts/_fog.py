@@ -66,11 +66,11 @@ class FogVolumes(eqx.Module):
     lights: tuple[DepthVolume, ...]
 
     def view_depth(self, scene: ShaftsScene, dirs, t):
-        """tau from the eye to eye + t dirs (unit `dirs` (*B, 3), t (*B))."""
+        """tau from the eye to `eye + t dirs` (unit `dirs` of shape `(*B, 3)`, `t` of shape `(*B)`)."""
         return self.view.lookup_points(jnp.broadcast_to(scene.camera.eye, dirs.shape) + t[..., None] * dirs)
 
     def light_depth(self, index: int, points):
-        """tau from light `index` to `points` (*B, 3)."""
+        """tau from light `index` to `points` of shape `(*B, 3)`."""
         return self.lights[index].lookup_points(points)
 
     def for_light(self, index: int) -> RayFog:
