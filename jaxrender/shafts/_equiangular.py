@@ -285,7 +285,7 @@ class _Frame(eqx.Module):
     surface: Array
 
 
-def _frame(scene: ShaftsScene, *, shadow_map: int | None, surface_shadows: str, fog_nodes: int | None) -> _Frame:
+def _frame(scene: ShaftsScene, *, shadow_map: int | None, surface_shadows: str, fog_nodes) -> _Frame:
     # stored once: XLA on CPU otherwise recasts the primary rays inside each of their consumers
     dirs, t_hit, normals, albedo, points = materialize(primary_hits, scene)
     res = scene.render.shadow_map if shadow_map is None else int(shadow_map)
@@ -318,7 +318,7 @@ def _light_scatters(scene: ShaftsScene, frame: _Frame, *, samples: int, bake: in
 
 
 def equiangular_ladder(scene: ShaftsScene, counts: tuple[int, ...], reference: int, *, shadow_map: int | None = 512,
-                       bake: int = _BAKE, fog_nodes: int | None = None, **_unused
+                       bake: int = _BAKE, fog_nodes: int | tuple[int, int] | None = None, **_unused
                        ) -> tuple[Float[Array, "C H W 3"], Float[Array, "H W 3"]]:
     """The in-scattered light of `scene` at each sample count of `counts` (one compiled kernel:
     `max(counts)` slots, the first n of them used, under `lax.map`) and at `reference` samples,
@@ -339,7 +339,8 @@ def equiangular_ladder(scene: ShaftsScene, counts: tuple[int, ...], reference: i
 
 def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int | None = 512,
                        surface_shadows: str = "map", chunk: int = 8192, prune: bool = True,
-                       bake: int = _BAKE, fog_nodes: int | None = None, return_parts: bool = False
+                       bake: int = _BAKE, fog_nodes: int | tuple[int, int] | None = None,
+                       return_parts: bool = False
                        ) -> Float[Array, "H W 3"]:
     """Render `scene` (H, W, 3 linear RGB): surfaces (shadow rays, two-sided Lambert, extinction)
     plus every light's in-scattering by `equiangular_scattering` with `samples` per pixel and light
@@ -355,8 +356,8 @@ def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int
     prune: evaluate each light only on the rays that pass through its cone in front of the visible
     surface (`active_rays_map`, in chunks of `chunk` rays); prune=False evaluates every pixel in one
     vectorized pass (same image; a smaller graph for tiny images and tests). bake:
-    light-map refinement factor (`bake_light_map`). fog_nodes: nodes per side of the optical-depth
-    volumes of a density grid (default `jaxrender.shafts.volume_nodes`). return_parts: also return
+    light-map refinement factor (`bake_light_map`). fog_nodes: (directions across, distances) of
+    a density grid's optical-depth volumes, or one number for both (default `volume_nodes`). return_parts: also return
     (surface, per-light in-scattering list). Jittable, differentiable; no retrace when light or medium values change.
     """
     frame = _frame(scene, shadow_map=shadow_map, surface_shadows=surface_shadows, fog_nodes=fog_nodes)

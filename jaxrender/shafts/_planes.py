@@ -467,7 +467,8 @@ def view_rays(scene: ShaftsScene, tiling: Tiling, mesh: tuple[int, int]) -> View
 def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, quantize_bits: int = 0,
                   mesh: tuple[int, int] = (15, 10), g_per_pixel: bool = False, tables: bool = True,
                   tile: tuple[int, int] = (16, 32), plane_chunk: int = 6, prune: bool = True,
-                  surface_shadows: str = "map", fog_nodes: int | None = None, return_parts: bool = False,
+                  surface_shadows: str = "map", fog_nodes: int | tuple[int, int] | None = None,
+                  return_parts: bool = False,
                   maps: tuple[ShadowMap, ...] | None = None, counts=None) -> Float[Array, "H W 3"]:
     """Render `scene` (H, W, 3 linear RGB) with the sample-plane method (see module docstring).
 
@@ -480,8 +481,9 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
     evaluates every pixel and plane in one vectorized pass: a much smaller graph (faster
     compilation, e.g. for small images and gradients) at the cost of the pruned work.
     surface_shadows: "map" (shadow maps with a slope-scaled bias, as the hardware does) or "rays"
-    (exact shadow rays, as the ray march). fog_nodes: nodes per side of a density grid's optical-depth
-    volumes (default `volume_nodes`). return_parts: also return (surface, per-light in-scattering list).
+    (exact shadow rays, as the ray march). fog_nodes: (directions across, distances) of a density
+    grid's optical-depth volumes, or one number for both (default `volume_nodes`). return_parts:
+    also return (surface, per-light in-scattering list).
     maps: the lights' shadow maps when several renders share them (default: rendered here at the
     scene's `render.shadow_map`). counts: traced (planes, sub-planes) in use, at most `planes` and
     `subplanes`, which then only size the slots (one compiled function for many counts, as
