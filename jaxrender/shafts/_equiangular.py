@@ -317,24 +317,28 @@ def _light_scatters(scene: ShaftsScene, frame: _Frame, *, samples: int, bake: in
                                  K=K, bias=scene.render.shadow_bias, samples=samples, fog=ray_fog), t0, t1)
 
 
-def equiangular_ladder(scene: ShaftsScene, counts: tuple[int, ...], reference: int, *, shadow_map: int | None = 512,
-                       bake: int = _BAKE, fog_nodes: int | tuple[int, int] | None = None, **_unused
-                       ) -> tuple[Float[Array, "C H W 3"], Float[Array, "H W 3"]]:
-    """The in-scattered light of `scene` at each sample count of `counts` (one compiled kernel:
-    `max(counts)` slots, the first n of them used, under `lax.map`) and at `reference` samples,
-    as `render_equiangular` renders it, sharing the rays, maps and volumes: what
-    `choose_counts` measures on its proxy. Every ray is evaluated (no pruning: proxies are small)."""
+def equiangular_ladder(scene: ShaftsScene, groups: tuple[tuple[int, ...], ...], reference: int, *,
+                       shadow_map: int | None = 512, bake: int = _BAKE,
+                       fog_nodes: int | tuple[int, int] | None = None, **_unused
+                       ) -> tuple[list[Float[Array, "H W 3"]], Float[Array, "H W 3"]]:
+    """The in-scattered light of `scene` at each sample count of `groups` and at `reference`
+    samples, as `render_equiangular` renders it, sharing the rays, maps and volumes: what
+    `choose_counts` measures on its proxy. The counts of a group share one compiled kernel of
+    `max(group)` slots (the first n used, under `lax.map`); every ray is evaluated (no pruning:
+    proxies are small). Returns (images in the order of the groups' counts, the reference)."""
     frame = _frame(scene, shadow_map=shadow_map, surface_shadows="map", fog_nodes=fog_nodes)
-    capacity = max(counts)
+    images = []
+    for group in groups:
+        capacity = max(group)
 
-    def at_count(n):
-        return sum(scatter(frame.dirs, t0, t1, count=n)
-                   for scatter, t0, t1 in _light_scatters(scene, frame, samples=capacity, bake=bake))
+        def at_count(n, capacity=capacity):
+            return sum(scatter(frame.dirs, t0, t1, count=n)
+                       for scatter, t0, t1 in _light_scatters(scene, frame, samples=capacity, bake=bake))
 
-    ladder = jax.lax.map(at_count, jnp.asarray(counts, dtype=frame.dirs.dtype))
+        images += list(jax.lax.map(at_count, jnp.asarray(group, dtype=frame.dirs.dtype)))
     ref = sum(scatter(frame.dirs, t0, t1) for scatter, t0, t1 in _light_scatters(scene, frame, samples=reference,
                                                                                 bake=bake))
-    return ladder, ref
+    return images, ref
 
 
 def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int | None = 512,
