@@ -37,7 +37,6 @@ Writes benchmarks/results/shafts_fog.json (the summary rows) and prints every ta
 from __future__ import annotations
 
 import argparse
-import multiprocessing
 import os
 import statistics
 import subprocess
@@ -84,19 +83,20 @@ def mitsuba_job(scene: dict, base_dir: str, spp: int, seed: int, variant: str, m
     return mean, wall, cpu, np.maximum(image[..., 3:6] - mean**2, 0.0)
 
 
-def in_child(fn, *args):
-    """fn(*args) in a fresh (spawned) process; RuntimeError if it dies."""
-    ctx = multiprocessing.get_context("spawn")
-    with ctx.Pool(1) as pool:
-        try:
-            return pool.apply(fn, args)
-        except Exception as error:  # noqa: BLE001 - report any failure of the child as one error
-            raise RuntimeError(f"Mitsuba child process failed: {type(error).__name__}: {error}") from None
+def mitsuba_jobs(jobs, quick: bool) -> tuple[list | None, str]:
+    """(each `mitsuba_job`'s result, a note naming the variant) from one child process
+    (`_peers.ChildPeer`: Mitsuba's LLVM backend compiles its kernels once, and its crash is reported,
+    not fatal); (None, why) when Mitsuba is unavailable. The jobs' variant is filled in here."""
+    from _peers import ChildPeer, PeerUnavailable, mitsuba_variant
 
-
-def mitsuba_jobs(jobs):
-    """Several `mitsuba_job`s in one child process (the LLVM backend compiles its kernels once)."""
-    return [mitsuba_job(*job) for job in jobs]
+    variant, note = ("scalar_rgb", "scalar_rgb (smoke run)") if quick else mitsuba_variant()
+    if variant is None:
+        return None, note
+    try:
+        with ChildPeer("Mitsuba 3") as peer:
+            return [peer.call(mitsuba_job, *job[:4], variant, *job[4:]) for job in jobs], note
+    except PeerUnavailable as error:
+        return None, f"{note}: {error.reason}"
 
 
 # -- helpers --------------------------------------------------------------------------------------------
@@ -132,6 +132,9 @@ def reference(name: str, scene, samples: int):
 
 
 # -- 1. agreement with Mitsuba ------------------------------------------------------------------------------
+AGREEMENT_TARGET = ("vs Mitsuba 3 on a grid scene (3 spots, light map, occluders), default --spp 16: <= 2 % rel. "
+                    "RMS of 4x4 block means (or 2 x its noise), float32 and float64")
+
 def agreement(args, base: Path) -> list[dict]:
     import jax
 
@@ -139,11 +142,12 @@ def agreement(args, base: Path) -> list[dict]:
 
     w, h = (32, 24) if args.quick else (96, 64)
     spp, seeds = (64, 2) if args.quick else (4096, 4)
-    variant = "scalar_rgb" if args.quick else "llvm_ad_rgb"
     scene_dict = C.fog_scene(w, h, base_dir=base)
     start = time.perf_counter()
-    reps = np.stack([out[0] for out in in_child(mitsuba_jobs, [(scene_dict, str(base), spp, 500 + k, variant)
-                                                                 for k in range(seeds)])])
+    results, variant = mitsuba_jobs([(scene_dict, str(base), spp, 500 + k) for k in range(seeds)], args.quick)
+    if results is None:
+        return [dict(issue="24 fog grids", target=AGREEMENT_TARGET, measured=variant, status="not measured")]
+    reps = np.stack([out[0] for out in results])
     mi_s = time.perf_counter() - start
     mean, var_of_mean = reps.mean(axis=0), reps.var(axis=0, ddof=1) / seeds
     b = 4
@@ -166,9 +170,7 @@ def agreement(args, base: Path) -> list[dict]:
     print(C.table(["ours", "size", "Mitsuba seeds x spp", "rel. RMS of block means", "Mitsuba's own noise",
                    "limit (max of 2 %, 2 x noise)", "status"], rows))
     worst = max(e for _, e in out)
-    return [dict(issue="24 fog grids", target="vs Mitsuba 3 on a grid scene (3 spots, light map, occluders), default "
-                                              "--spp 16: <= 2 % rel. RMS of 4x4 block means (or 2 x its noise), "
-                                              "float32 and float64",
+    return [dict(issue="24 fog grids", target=AGREEMENT_TARGET,
                  measured=f"float32 {100 * out[0][1]:.2f} %, float64 {100 * out[1][1]:.2f} % (Mitsuba's noise "
                           f"{100 * noise:.2f} %, {seeds} x {spp} spp, {w} x {h}, {variant})",
                  status="met" if worst <= limit else "missed", figures={"float32": out[0][1], "float64": out[1][1],
@@ -216,11 +218,12 @@ def frames(args, base: Path) -> list[dict]:
 
     from jaxrender.shafts import render_equiangular
 
-    w, h = (64, 48) if args.quick else (C.PAPER_W, C.PAPER_H)
+    w, h = (48, 32) if args.quick else (C.PAPER_W, C.PAPER_H)
     repeats = 1 if args.quick else args.repeats
     fn = jax.jit(lambda s: render_equiangular(s))
     times = {}
-    for name, uniform in (("uniform", True), ("grid", False)):
+    # a smoke run renders the grid frame alone (each frame is a compilation); the ratio needs both
+    for name, uniform in (("grid", False),) if args.quick else (("uniform", True), ("grid", False)):
         scene = fog_scene(w, h, base, uniform=uniform)
         image, first, med = C.timed(fn, scene, repeats=repeats)
         times[name] = (med, C.timed.cpu, first)
@@ -228,6 +231,9 @@ def frames(args, base: Path) -> list[dict]:
             from jaxrender.io import write_image
 
             write_image(C.FIGURES / f"shafts_fog_{name}.png", image, exposure=2.0)
+    if args.quick:
+        print(f"grid frame {w} x {h}: {times['grid'][0]:.3f} s wall, compile + first {times['grid'][2]:.1f} s")
+        return []
     ratio_wall, ratio_cpu = times["grid"][0] / times["uniform"][0], times["grid"][1] / times["uniform"][1]
     print(f"\n2. Frames {w} x {h}, default method (equiangular, 24 samples, shadow map 512), median of {repeats} "
           f"(load {load_avg():.1f})")
@@ -239,8 +245,6 @@ def frames(args, base: Path) -> list[dict]:
                           f"{times['uniform'][0]:.3f} s wall; {w} x {h})",
                  status="met" if ratio_wall <= 3 else "missed", figures={"ratio_wall": ratio_wall,
                                                                           "ratio_cpu": ratio_cpu})]
-    if args.quick:  # a smoke run: the spot frame's compile is left out
-        return rows
     spot_w, spot_h = C.PAPER_W, C.PAPER_H
     ours, base_runs = [], []
     for _ in range(3):  # interleaved with the baseline checkout's runs
@@ -309,6 +313,8 @@ def gradient(args, base: Path) -> list[dict]:
 
 
 # -- 4. speed at equal error against Mitsuba ------------------------------------------------------------------
+SPEED_TARGET = ">= 1000x Mitsuba at equal error (2 %) on the grid scene, Mitsuba measured (extrapolated <= 4x)"
+
 def mitsuba_speed(args, base: Path) -> list[dict]:
     import jax
 
@@ -330,14 +336,16 @@ def mitsuba_speed(args, base: Path) -> list[dict]:
     scene_dict = C.fog_scene(w, h, base_dir=base)
     spps = [int(x) for x in args.mitsuba_spps.split(",")] if args.mitsuba_spps else ([4, 16] if args.quick
                                                                                    else [64, 256, 3072])
-    variant = "scalar_rgb" if args.quick else "llvm_ad_rgb"
     # two seeds at each count but the last (the noise law), one render with Mitsuba's moment
     # integrator at the last (its own noise from its per-pixel variance: half the render time)
-    jobs = [(scene_dict, str(base), 1, 0, variant)]  # warm-up: the LLVM backend compiles its kernels
+    jobs = [(scene_dict, str(base), 1, 0)]  # warm-up: the LLVM backend compiles its kernels
     for spp in spps[:-1]:
-        jobs += [(scene_dict, str(base), spp, 1, variant), (scene_dict, str(base), spp, 2, variant)]
-    jobs.append((scene_dict, str(base), spps[-1], 3, variant, True))
-    results = in_child(mitsuba_jobs, jobs)[1:]
+        jobs += [(scene_dict, str(base), spp, 1), (scene_dict, str(base), spp, 2)]
+    jobs.append((scene_dict, str(base), spps[-1], 3, True))
+    results, variant = mitsuba_jobs(jobs, args.quick)
+    if results is None:
+        return [dict(issue="24 fog grids", target=SPEED_TARGET, measured=variant, status="not measured")]
+    results = results[1:]
     mi = []
     for i, spp in enumerate(spps[:-1]):
         (a, ta, ca), (b, tb, cb) = results[2 * i], results[2 * i + 1]
@@ -353,17 +361,16 @@ def mitsuba_speed(args, base: Path) -> list[dict]:
     print(f"\n4. Equal error (2 %) on the grid scene {w} x {h} (load {load_avg():.1f})")
     print(C.table(["renderer", "setting", "rel. RMS error", "wall s", "CPU s"],
                   [["ours", f"{n} samples", f"{100 * e:.2f} %", f"{t:.3f}", f"{c:.3f}"] for n, e, t, c in ours]
-                  + [[f"Mitsuba {variant}", f"{s} spp", f"{100 * e:.2f} %", f"{t:.1f}", f"{c:.1f}"]
+                  + [[variant, f"{s} spp", f"{100 * e:.2f} %", f"{t:.1f}", f"{c:.1f}"]
                      for s, e, t, c in mi]))
     if best is None:
-        return [dict(issue="24 fog grids", target=">= 1000x Mitsuba at equal error (2 %) on the grid scene",
-                     measured="no sample count of ours reached 2 %", status="missed")]
+        return [dict(issue="24 fog grids", target=SPEED_TARGET, measured="no sample count of ours reached 2 %",
+                     status="missed")]
     ratio, ratio_cpu = t_2 / best[2], c_2 / best[3]
     print(f"Mitsuba to 2 %: {t_2:.0f} s wall, {c_2:.0f} s CPU ({factor:.1f}x its {spp_max}-spp run); ours {best[0]} "
           f"samples {best[2]:.3f} s wall, {best[3]:.3f} s CPU -> {ratio:.0f}x wall, {ratio_cpu:.0f}x CPU")
-    return [dict(issue="24 fog grids", target=">= 1000x Mitsuba at equal error (2 %) on the grid scene, Mitsuba "
-                                              "measured (extrapolated <= 4x)",
-                 measured=f"{ratio:.0f}x wall, {ratio_cpu:.0f}x CPU: Mitsuba {variant} {spp_max} spp "
+    return [dict(issue="24 fog grids", target=SPEED_TARGET,
+                 measured=f"{ratio:.0f}x wall, {ratio_cpu:.0f}x CPU: {variant}, {spp_max} spp "
                           f"{100 * e_max:.2f} % in {t_max:.0f} s -> 2 % at {t_2:.0f} s ({factor:.1f}x what ran); "
                           f"ours {best[0]} samples {100 * best[1]:.2f} % in {best[2]:.3f} s ({w} x {h})",
                  status=("met" if min(ratio, ratio_cpu) >= 1000 else "missed")
@@ -459,7 +466,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smoke run: small sizes, few samples")
     parser.add_argument("--sections", default=None, help=f"comma list of {', '.join(SECTIONS)} (default: all; "
-                                                         "--quick: frames, without the spot frame)")
+                                                         "--quick: the grid frame alone, 48 x 32)")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--baseline-checkout", default=None, help="time the spot frame in this checkout too")
     parser.add_argument("--mitsuba-spps", default=None, help="Mitsuba's sample counts (default 64,256,3072; the last "
