@@ -39,8 +39,8 @@ fog as their medium, those outside none; a shape that straddles the box's faces 
 expressed (one medium per side of a surface): ValueError.
 
 With `moments=True` the integrator is wrapped in Mitsuba's `moment` integrator so one render
-returns the per-pixel mean and the per-pixel variance of a single sample, from which the standard
-error of any pixel or block mean follows (`block_standard_error`).
+returns the per-pixel mean and the per-pixel variance of a single sample's luminance, from which
+the standard error of any pixel's or block's mean luminance follows (`block_standard_error`).
 """
 
 from __future__ import annotations
@@ -236,9 +236,11 @@ def render_mitsuba(
 ):
     """Render a light-shaft scene dict with Mitsuba 3.
 
-    Returns the `H W 3` float64 image, or with `moments=True` the pair (mean image, per-sample
-    variance image), both `H W 3`: the variance of one sample's radiance in each pixel, so the
-    standard error of the pixel mean is sqrt(var/spp).
+    Returns the `H W 3` float64 image, or with `moments=True` the pair (mean image `H W 3`,
+    per-sample variance of its luminance `H W`): the variance of one sample's Y in each pixel, so
+    the standard error of the pixel's mean luminance is sqrt(var/spp). Mitsuba's `moment`
+    integrator records its moments as AOVs in CIE XYZ after the RGB image (channels nested.X/Y/Z,
+    then m2_nested.X/Y/Z); Y is the luminance 0.2127 R + 0.7152 G + 0.0722 B of the linear image.
     """
     import mitsuba as mi
 
@@ -248,8 +250,9 @@ def render_mitsuba(
     img = np.array(mi.render(mscene, spp=int(spp), seed=int(seed)), dtype=np.float64)
     if not moments:
         return img[..., :3]
-    mean, m2 = img[..., 0:3], img[..., 3:6]
-    return mean, np.maximum(m2 - mean**2, 0.0)
+    names = mscene.integrator().aov_names()
+    y, m2_y = img[..., 3 + names.index("nested.Y")], img[..., 3 + names.index("m2_nested.Y")]
+    return img[..., :3], np.maximum(m2_y - y**2, 0.0)
 
 
 def block_means(img: np.ndarray, block: int) -> np.ndarray:
