@@ -43,7 +43,8 @@ MAX_IMAGE_PROBLEMS = MAX_PROBLEMS  # the problems reported before a validation s
 UNIT_TOLERANCE = 1e-3  # a light's `direction` may differ from unit length by this much (it is normalised)
 # other keys are ignored, as version 1 always did (`fitting synth` records its settings under `synth`)
 MANIFEST_FIELDS = ("format", "version", "size", "response", "exposures_s", "view", "white", "lights", "mask",
-                   "saturation")
+                   "saturation", "encoding")
+ENCODINGS = ("codes", "radiance")
 RESPONSES = ("linear", "srgb")
 _CHECK_BATCH = 256  # images checked per round of the thread pool (a huge capture is never queued at once)
 
@@ -410,6 +411,9 @@ def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, h
     reflectance, white_names = _white(white_fields, None if exposures is None else len(exposures))
     mask_name = doc.string("mask", default=None)
     saturation = doc.number("saturation", default=None, lo=0.0, lo_open=True)
+    declared = doc.string("encoding", default=None)
+    if declared is not None and declared not in ENCODINGS:
+        doc.problem("encoding", f"{declared!r} is not 'codes' or 'radiance'")
     white_paths = [root / p for p in (white_names or [])]
     # the images with the entries that name them, batch by batch (the problems stop at MAX_PROBLEMS)
     images = _ImageChecker(size, doc.problems, check_pixels=check_pixels, headers_only=headers_only, workers=workers)
@@ -426,7 +430,11 @@ def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, h
     doc.problems.check()
     if response is None or exposures is None or view is None or size is None or np.isnan(dirs).any():
         raise CaptureError([f"{manifest_path}: incomplete"])  # (every missing field was noted above)
-    encoding = "radiance" if exr == {True} else "codes"
+    if declared == "radiance" and exr != {True}:
+        doc.problem("encoding", "'radiance' needs EXR images (integer images are codes)")
+        doc.problems.check()
+    # EXR is radiance unless the manifest says its floats are a camera's codes (`fitting synth`)
+    encoding = declared or ("radiance" if exr == {True} else "codes")
     return Capture(
         root=root.resolve(), size=size, response=response, exposures_s=exposures, view_dir=np.asarray(view),
         light_dirs=dirs, light_images=ImageLists(root.resolve(), names),

@@ -177,14 +177,16 @@ def test_manifest_problems_of_the_extensions(tmp_path):
     write_png(root / "a.png", np.full(SIZE + (3,), 0.5), srgb=False)
     _manifest(root, [{"direction": [0, 0.6, 0.6], "intensity": 1, "images": ["a.png"]},
                      {"direction": [0, 0.6, -0.8], "intensity": [1, 2], "images": ["a.png"]},
-                     {"theta_deg": 10, "phi_deg": 0, "images": ["a.png"]}], mask="nope.png", extra=1)
+                     {"theta_deg": 10, "phi_deg": 0, "images": ["a.png"]}], mask="nope.png", extra=1,
+              encoding="raw")
     with pytest.raises(CaptureError) as info:
         load_capture(root)
     text = "\n".join(info.value.problems)
     for fragment in ("lights[0].direction: [0.0, 0.6, 0.6] is not a unit vector",
                      "lights[1].direction: [0.0, 0.6, -0.8] is at or below the horizon",
                      "lights[1].intensity: expected a positive number or RGB triple",
-                     "lights: 2 of 3 lights carry an intensity", "nope.png: missing image"):
+                     "lights: 2 of 3 lights carry an intensity", "nope.png: missing image",
+                     "encoding: 'raw' is not 'codes' or 'radiance'"):
         assert fragment in text, text
 
 

@@ -145,7 +145,10 @@ def on_config(config):
         (layer if module.path.startswith("jaxrender.app") else kernels[module.path.split(".")[0]]).append(page)
     api_nav = [pages[0] if len(pages) == 1 else {name: pages}
                for name, pages in [*kernels.items(), ("jaxrender.app", layer)]]
-    config.nav = [*config.nav,
+    listed = {next(iter(entry.values())) if isinstance(entry, dict) else entry for entry in config.nav}
+    written = sorted(p.relative_to(ROOT / "docs").as_posix() for p in (ROOT / "docs").glob("*.md"))
+    more = [page for page in written if page not in listed]  # hand-written pages mkdocs.yml does not list yet
+    config.nav = [*config.nav, *([{"How it works": more}] if more else []),
                   {"API reference": api_nav},
                   {"Command lines": [{p: f"{CLI_DIR}/{p}.md"} for p in COMMAND_TABLES]},
                   {"Notebooks": [nb.relative_to(ROOT).as_posix() for nb in notebooks]}]

@@ -1,5 +1,6 @@
 """File I/O at the edge of the toolkit: EXR (OpenEXR), PNG (scikit-image), BTF directories,
-colour transfer functions and tone mapping, atomic writes, output locks, and the error types."""
+BVH motion capture, colour transfer functions and tone mapping, atomic writes, output locks, and the
+error types."""
 
 from ..errors import InputError as InputError
 from ..errors import InputErrors as InputErrors
@@ -18,6 +19,10 @@ from ._btf import read_btf as read_btf
 from ._btf import write_btf as write_btf
 from ._btf import write_btf_levels as write_btf_levels
 from ._btf import write_btf_previews as write_btf_previews
+from ._bvh import CHANNEL_NAMES as CHANNEL_NAMES
+from ._bvh import BVHMotion as BVHMotion
+from ._bvh import read_bvh as read_bvh
+from ._bvh import write_bvh as write_bvh
 from ._color import linear_to_srgb as linear_to_srgb
 from ._color import luminance as luminance
 from ._color import srgb_to_linear as srgb_to_linear

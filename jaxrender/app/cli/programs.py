@@ -14,7 +14,7 @@ JAXRENDER_COMMANDS = {
     "gallery": ("jaxrender.app.cli.gallery", "render the showcase scenes and a fit into an HTML gallery"),
     "shafts": ("jaxrender.app.cli.shafts", "render light shafts from a scene file (paper 000)"),
     "desert": ("jaxrender.app.cli.desert", "render a desert of dunes and wind ripples (paper 001)"),
-    "noh": ("jaxrender.app.cli.noh", "render woven fabric under environment light and firelight (paper 004)"),
+    "noh": ("jaxrender.app.cli.noh", "Takigi Noh: a costumed performer on a Noh stage between bonfires (paper 004)"),
 }
 FITTING_COMMANDS = {
     "synth": ("jaxrender.app.cli.synth", "write a synthetic multi-light HDR capture with known parameter maps"),
