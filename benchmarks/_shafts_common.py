@@ -178,3 +178,60 @@ def save_figure(fig, name: str, *, quick: bool = False) -> Path:
     path = FIGURES / name
     fig.savefig(path, dpi=110, bbox_inches="tight")
     return path
+
+
+def fog_density(shape: tuple[int, int, int] = (16, 24, 32), *, seed: int = 0, drift: float = 0.0) -> np.ndarray:
+    """A smooth non-uniform fog (nz, ny, nx) on the unit cube: a ground layer thinning with height
+    (e-folding at a quarter of the box), a few soft blobs and a gentle wave, values 0.05-3; `drift`
+    moves the pattern along x (in box widths) for animation."""
+    nz, ny, nx = shape
+    z, y, x = np.meshgrid(*((np.arange(n) + 0.5) / n for n in shape), indexing="ij")
+    rng = np.random.default_rng(seed)
+    d = 0.25 + 1.6 * np.exp(-y / 0.25) * (1.0 + 0.45 * np.sin(2 * np.pi * (1.5 * (x - drift) + z) + 0.7))
+    for _ in range(5):
+        c = rng.uniform(0.15, 0.85, 3)
+        r = rng.uniform(0.08, 0.18)
+        cx = (c[0] + drift) % 1.0
+        d += rng.uniform(0.6, 1.4) * np.exp(-((x - cx) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2) / (2 * r * r))
+    return np.clip(d, 0.05, None)
+
+
+FOG_BOX = ([-4.6, -0.05, -4.3], [4.6, 4.2, 2.6])  # the fog bank: floor, wall and spheres inside, eye and lights outside
+
+
+def fog_scene(width: int = PAPER_W, height: int = PAPER_H, *, base_dir: Path, shape=(16, 24, 32),
+              uniform: bool = False) -> dict:
+    """The grid scene of issue 24: three spot lights (one projecting the polka-dot light map), two
+    spheres and a small one casting shadow shafts, a floor and a back wall, in a fog bank given by
+    `fog_density` on the box FOG_BOX (written to base_dir/fog_density.npy). The eye and the lights
+    are outside the box, every object inside (Mitsuba's surfaces take one medium per side).
+    `uniform`: the same scene in uniform fog (no grid), for the frame-time ratio."""
+    dots = write_light_map(base_dir, "dots.exr", polka_dots(64, dots=4))
+    spots = [
+        {"position": [-2.6, 5.6, 1.0], "target": [-1.0, 0.0, -1.0], "intensity": [420, 260, 160]},
+        {"position": [0.3, 6.0, 0.0], "target": [0.2, 0.0, -1.6], "intensity": [380, 380, 340], "light_map": dots},
+        {"position": [2.8, 5.6, 0.8], "target": [1.2, 0.0, -0.6], "intensity": [150, 240, 420]},
+    ]
+    for s in spots:
+        s.update({"up": [0.0, 0.0, 1.0], "cutoff_deg": 20.0, "beam_width_deg": 14.0})
+        s["intensity"] = [float(x) for x in s["intensity"]]
+    medium = {"rho": 1.0, "kappa": 0.12, "K": 0.004}
+    if not uniform:
+        np.save(base_dir / "fog_density.npy", fog_density(shape))
+        medium["density"] = {"grid": "fog_density.npy", "box_min": FOG_BOX[0], "box_max": FOG_BOX[1]}
+    return {
+        "camera": {"eye": [0.0, 1.8, 8.0], "target": [0.0, 1.4, 0.0], "up": [0.0, 1.0, 0.0], "fov_y_deg": 42.0,
+                   "width": width, "height": height},
+        "medium": medium,
+        "render": dict(RENDER),
+        "spotlights": spots,
+        "objects": [
+            {"type": "quad", "center": [0.0, 0.0, -1.0], "u": [4.5, 0.0, 0.0], "v": [0.0, 0.0, -3.2],
+             "albedo": [0.35, 0.32, 0.3]},
+            {"type": "quad", "center": [0.0, 2.0, -4.2], "u": [4.5, 0.0, 0.0], "v": [0.0, 2.0, 0.0],
+             "albedo": [0.25, 0.25, 0.3]},
+            {"type": "sphere", "center": [-1.1, 0.7, -1.0], "radius": 0.7, "albedo": [0.8, 0.7, 0.6]},
+            {"type": "sphere", "center": [1.3, 0.5, -0.5], "radius": 0.5, "albedo": [0.6, 0.7, 0.8]},
+            {"type": "sphere", "center": [0.25, 2.6, -1.4], "radius": 0.3, "albedo": [0.85, 0.85, 0.85]},
+        ],
+    }

@@ -28,9 +28,19 @@ Mitsuba 3 scene that design.md declares equivalent:
   its centre: compare against a supersampled render, or block means);
 - `independent` sampler (independent samples make per-pixel variance estimates honest).
 
+Fog with a density grid (`medium.density`, issue 24): a `heterogeneous` medium whose `sigma_t` is
+a `gridvolume` of the grid (trilinear, wrap_mode clamp; its data (nz, ny, nx) is Mitsuba's
+(z, y, x) layout, x fastest, and its unit cube is mapped onto [box_min, box_max] by `to_world` =
+translate(box_min) scale(box_max - box_min), voxel centres at (i + 1/2)/n as in our DensityGrid:
+checked value by value in tests/test_shafts_fog.py) scaled by `scale` = rho*kappa, the same
+albedo and tabphase; the box is a null-BSDF `cube` with the fog inside and nothing outside, so
+there is no fog outside the box. The sensor, the emitters and the shapes inside the box get the
+fog as their medium, those outside none; a shape that straddles the box's faces cannot be
+expressed (one medium per side of a surface): ValueError.
+
 With `moments=True` the integrator is wrapped in Mitsuba's `moment` integrator so one render
-returns the per-pixel mean and the per-pixel variance of a single sample, from which the standard
-error of any pixel or block mean follows (`block_standard_error`).
+returns the per-pixel mean and the per-pixel variance of a single sample's luminance, from which
+the standard error of any pixel's or block's mean luminance follows (`block_standard_error`).
 """
 
 from __future__ import annotations
@@ -74,6 +84,24 @@ def _quad_matrix(center, u, v) -> list[list[float]]:
     return m.tolist()
 
 
+def _density_grid(density: dict, base_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    values = np.load(base_dir / density["grid"], allow_pickle=False).astype(np.float32)
+    return values, np.asarray(density["box_min"], float), np.asarray(density["box_max"], float)
+
+
+def _inside(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    return np.all((points >= lo) & (points <= hi), axis=-1)
+
+
+def _object_points(obj: dict) -> np.ndarray:
+    c = np.asarray(obj["center"], float)
+    if obj["type"] == "sphere":
+        r = float(obj["radius"])
+        return c + r * np.concatenate([np.eye(3), -np.eye(3)])  # inside an axis-aligned box iff these are
+    u, v = np.asarray(obj["u"], float), np.asarray(obj["v"], float)
+    return np.stack([c + a * u + b * v for a in (-1, 1) for b in (-1, 1)])
+
+
 def mitsuba_scene_dict(
     scene: dict,
     *,
@@ -104,15 +132,40 @@ def mitsuba_scene_dict(
         raise ValueError("medium scatters (rho*K > 0) without extinction (rho*kappa = 0): Mitsuba "
                          "needs sigma_t > 0 for a scattering medium")
     ref = {"type": "ref", "id": "fog"}
+    box = _density_grid(med["density"], base_dir) if fog and med.get("density") else None
+
+    def medium_at(points) -> bool:
+        """Whether the fog surrounds these points (all inside the box, or no box at all)."""
+        if box is None:
+            return fog
+        inside = _inside(np.atleast_2d(np.asarray(points, float)), box[1], box[2])
+        if inside.all():
+            return True
+        if inside.any():
+            raise ValueError("a shape straddles the density grid's box: Mitsuba's surfaces take one medium per side")
+        return False
 
     d: dict = {"type": "scene"}
-    if fog:
+    phase = {"type": "tabphase", "values": ", ".join(f"{x:.9g}" for x in phase_table(phase_points))}
+    if box is not None:
+        values, lo, hi = box
+        d["fog"] = {
+            "type": "heterogeneous",
+            "sigma_t": {"type": "gridvolume", "grid": mi.VolumeGrid(values),
+                        "to_world": mi.ScalarTransform4f().translate(_vec(lo)).scale(_vec(hi - lo)),
+                        "filter_type": "trilinear", "wrap_mode": "clamp"},
+            "scale": sigma_t,
+            "albedo": 8.0 * math.pi * k_phase / kappa,
+            "phase": phase,
+        }
+        d["fog_box"] = {"type": "cube", "bsdf": {"type": "null"}, "interior": ref,
+                        "to_world": mi.ScalarTransform4f().translate(_vec((lo + hi) / 2)).scale(_vec((hi - lo) / 2))}
+    elif fog:
         d["fog"] = {
             "type": "homogeneous",
             "sigma_t": sigma_t,
             "albedo": 8.0 * math.pi * k_phase / kappa,
-            "phase": {"type": "tabphase",
-                      "values": ", ".join(f"{x:.9g}" for x in phase_table(phase_points))},
+            "phase": phase,
         }
     nested = {"type": "volpath", "max_depth": 2, "rr_depth": 100}
     d["integrator"] = {"type": "moment", "nested": nested} if moments else nested
@@ -129,7 +182,7 @@ def mitsuba_scene_dict(
                  "rfilter": {"type": "box"}},
         "sampler": {"type": "independent", "sample_count": int(spp)},
     }
-    if fog:
+    if medium_at(cam["eye"]):
         sensor["medium"] = ref
     d["sensor"] = sensor
 
@@ -148,7 +201,7 @@ def mitsuba_scene_dict(
             e["texture"] = {"type": "bitmap",
                             "bitmap": mi.Bitmap(_load_light_map(base_dir / spot["light_map"])),
                             "raw": True, "wrap_mode": "clamp", "filter_type": "bilinear"}
-        if fog:
+        if medium_at(spot["position"]):
             e["medium"] = ref
         d[f"spot_{i}"] = e
 
@@ -163,7 +216,7 @@ def mitsuba_scene_dict(
         else:
             raise ValueError(f"objects[{i}]: unknown type {obj['type']!r}")
         s["bsdf"] = bsdf
-        if fog:
+        if medium_at(_object_points(obj)):
             s["interior"] = ref
             s["exterior"] = ref
         d[f"shape_{i}"] = s
@@ -183,9 +236,11 @@ def render_mitsuba(
 ):
     """Render a light-shaft scene dict with Mitsuba 3.
 
-    Returns the `H W 3` float64 image, or with `moments=True` the pair (mean image, per-sample
-    variance image), both `H W 3`: the variance of one sample's radiance in each pixel, so the
-    standard error of the pixel mean is sqrt(var/spp).
+    Returns the `H W 3` float64 image, or with `moments=True` the pair (mean image `H W 3`,
+    per-sample variance of its luminance `H W`): the variance of one sample's Y in each pixel, so
+    the standard error of the pixel's mean luminance is sqrt(var/spp). Mitsuba's `moment`
+    integrator records its moments as AOVs in CIE XYZ after the RGB image (channels nested.X/Y/Z,
+    then m2_nested.X/Y/Z); Y is the luminance 0.2127 R + 0.7152 G + 0.0722 B of the linear image.
     """
     import mitsuba as mi
 
@@ -195,8 +250,9 @@ def render_mitsuba(
     img = np.array(mi.render(mscene, spp=int(spp), seed=int(seed)), dtype=np.float64)
     if not moments:
         return img[..., :3]
-    mean, m2 = img[..., 0:3], img[..., 3:6]
-    return mean, np.maximum(m2 - mean**2, 0.0)
+    names = mscene.integrator().aov_names()
+    y, m2_y = img[..., 3 + names.index("nested.Y")], img[..., 3 + names.index("m2_nested.Y")]
+    return img[..., :3], np.maximum(m2_y - y**2, 0.0)
 
 
 def block_means(img: np.ndarray, block: int) -> np.ndarray:

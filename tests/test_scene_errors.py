@@ -107,13 +107,13 @@ def test_cli_renders_png_and_times(tmp_path, capsys):
 
 
 def test_every_problem_of_a_scene_is_reported_at_once(tmp_path):
-    scene = _edit(lambda s: (s["camera"].update(fov_y_deg=-3), s["medium"].update(density=2.0),
+    scene = _edit(lambda s: (s["camera"].update(fov_y_deg=-3), s["medium"].update(densty=2.0),
                              s["spotlights"][0].pop("intensity"), s["objects"][0].update(radius="big")))
     with pytest.raises(InputError) as info:
         shafts_scene_from_dict(scene, source="x.json", base_dir=_write(tmp_path, _SCENE).parent)
     lines = str(info.value).splitlines()
     assert lines == ["x.json: camera.fov_y_deg: must be > 0, got -3",
-                     "x.json: medium.density: unknown field (expected one of: rho, kappa, K)",
+                     "x.json: medium.densty: unknown field (expected one of: rho, kappa, K, density)",
                      "x.json: spotlights[0].intensity: missing field",
                      "x.json: objects[0].radius: expected a number, got 'big'"]
 

@@ -24,6 +24,14 @@ ONE nearest-texel fetch of the light map pre-filtered onto a grid `bake` times f
 fetches per sample). Cost per pixel and light: `samples` x (about 60 flops, one exp, one or two
 gathers); only the rays that enter a light's cone are evaluated for it (`active_rays_map`).
 
+Fog with a density grid (issue 24): each sample also needs d(P) (a trilinear lookup of the
+grid), the optical depth toward the light (the light's `DepthVolume`, indexed by the same uv as
+the shadow map and the sample's distance) and toward the eye: the eye's volume gives it at the
+ends of the ray's interval and a trapezoid rule over the samples' own d fills in between,
+anchored at both ends (so it costs no lookup per sample). The interval itself is cut to the
+grid's box. Its weight rho d F I exp(-rho kappa (tau_l + tau_v)) dphi / h replaces the uniform
+fog's; a grid of ones reproduces it to rounding. See docs/fog.md.
+
 Surfaces: two-sided Lambert with extinction (`surface_term`), shadowed by the same shadow maps
 (`shadow_map_visibility`, the plane method's slope-scaled lookup) or, on request, by exact shadow
 rays. Gradients flow to rho, kappa, K, intensity, the light's pose (geometry, falloff,
@@ -35,6 +43,7 @@ from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
@@ -44,11 +53,13 @@ from ..geometry import cast_rays, hit_point
 from ..lights import SpotLight
 from ..maths import atan_nonneg, outer
 from ..textures import bilinear
+from ._density import DepthVolume
+from ._fog import FogVolumes, RayFog, fog_volumes
 from ._model import FAR, cone_intervals, light_reach, surface_term
 from ._raymarch import surface_visibility
 from ._scene import ShaftsScene, shadow_maps
 
-__all__ = ["render_equiangular", "equiangular_scattering", "bake_light_map", "active_rays_map"]
+__all__ = ["render_equiangular", "equiangular_scattering", "equiangular_ladder", "bake_light_map", "active_rays_map"]
 
 
 _H_MIN = 1e-6  # floor of the ray-to-light distance h (a ray through the light itself)
@@ -84,13 +95,40 @@ def bake_light_map(light: SpotLight, *, bake: int = _BAKE, max_size: int = _BAKE
     return bilinear(lmap, jnp.stack([u, v], axis=-1), wrap="clamp")
 
 
+def _view_depth_along(view: DepthVolume, eye: Array, dirs: Array, t: Array) -> Array:
+    return view.lookup_points(jnp.broadcast_to(eye, dirs.shape) + t[..., None] * dirs)
+
+
+def _anchored_view_depth(dens: Array, left: Array, right: Array, t_s: Array, e0: Array, e1: Array, tau0: Array,
+                         tau1: Array) -> Array:
+    """Optical depth from the eye at the samples t_s (*B, S) of a view ray: each sample stands for
+    the cell [left, right] of view ray between its neighbours' angle midpoints (the cells tile
+    [e0, e1]); tau0 = tau(e0) plus d times the cells before it and the part of its own cell up to
+    t_s, then corrected linearly in t so that it ends at tau1 = tau(e1) (tau0, tau1 from the
+    eye's volume). For d = 1 this is t_s exactly (the cells telescope), so a grid of ones gives
+    the uniform fog's exp(-rho kappa t) to rounding."""
+    mass = dens * (right - left)  # 0 in unused slots (dens masked by the caller)
+    n = dens.shape[-1]
+    # prefix sums as a product with a triangular matrix: XLA's CPU cumsum over a short minor axis
+    # costs ~25 ns per element, the matrix product ~1 ns
+    before = mass @ jnp.triu(jnp.ones((n, n), dens.dtype), 1)
+    total = jnp.sum(mass, axis=-1)
+    span = e1 - e0
+    ok = span > 0
+    frac = (t_s - e0[..., None]) / jnp.where(ok, span, 1.0)[..., None]
+    return tau0[..., None] + before + dens * (t_s - left) + frac * jnp.where(ok, tau1 - tau0 - total, 0.0)[..., None]
+
+
 def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: Float[Array, "N N 3"] | None,
                            eye: Float[Array, "3"], dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"],
-                           t1: Float[Array, "*B"], rho, kappa, K, bias, *, samples: int) -> Float[Array, "*B 3"]:
+                           t1: Float[Array, "*B"], rho, kappa, K, bias, *, samples: int,
+                           fog: RayFog | None = None, count=None) -> Float[Array, "*B 3"]:
     """In-scattered radiance of one spot light along view rays eye + t dirs, t in [t0, t1]
     (eq. 2, `samples` midpoints equally spaced in the angle seen from the light; see the module
     docstring). `depth`: the light's shadow map (distances, nearest texel + `bias`); `baked`: the
-    light map from `bake_light_map` (None: uniform)."""
+    light map from `bake_light_map` (None: uniform); `fog`: the density grid's lookups (None:
+    uniform fog). `count` (a traced integer <= samples): use only the first `count` of `samples`
+    slots, spaced for `count` (one compiled function for many counts, as `choose_counts` needs)."""
     x_ax, y_ax, z_ax = light.frame()
     rel = eye - light.position
     le = jnp.stack([jnp.dot(rel, x_ax), jnp.dot(rel, y_ax), jnp.dot(rel, z_ax)])
@@ -104,8 +142,9 @@ def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: 
     active = t1 > t0
     phi0 = _signed_atan(t0 - t_p, h)
     phi1 = _signed_atan(jnp.where(active, t1, t0) - t_p, h)
-    step = (phi1 - phi0) / samples
+    step = (phi1 - phi0) / (samples if count is None else count)
     frac = (jnp.arange(samples, dtype=dirs.dtype) + 0.5).reshape((1,) * phi0.ndim + (samples,))
+    active_s = active[..., None] if count is None else active[..., None] & (frac < count)  # slots in use
     phi = phi0[..., None] + step[..., None] * frac  # (*B, S)
     c, s = _cos_sin(phi)
     c = jnp.maximum(c, 1e-7)
@@ -126,21 +165,44 @@ def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: 
     fall = jnp.where(theta <= beam, 1.0, (cut - theta) * inv_ramp)
     # shadow-map and light-map coordinates: the same uv (design.md)
     inv = 0.5 / (safe_z * jnp.tan(cut))
-    u = jax.lax.stop_gradient(0.5 + wx * inv)
-    v = jax.lax.stop_gradient(0.5 + wy * inv)
+    u_raw, v_raw = 0.5 + wx * inv, 0.5 + wy * inv
+    u = jax.lax.stop_gradient(u_raw)
+    v = jax.lax.stop_gradient(v_raw)
     res = depth.shape[0]
     col = jnp.clip(jnp.floor(u * res).astype(jnp.int32), 0, res - 1)
     row = jnp.clip(jnp.floor(v * res).astype(jnp.int32), 0, res - 1)
     occ = depth.reshape((-1,))[row * res + col]
     dist = h[..., None] / c
-    lit = front & (theta < cut) & (jax.lax.stop_gradient(dist) <= occ + bias) & active[..., None]
+    lit = front & (theta < cut) & (jax.lax.stop_gradient(dist) <= occ + bias) & active_s
     # smooth part: rho F(alpha) exp(-sigma (s + t)) dphi / h, cos(alpha) = -sin(phi)
     c2 = 0.5 * (1.0 - s)
     c4 = c2 * c2
     c8 = c4 * c4
     phase = K * (1.0 + 9.0 * c8 * c8)
-    path = t_p[..., None] + h[..., None] * (1.0 + s) / c  # s + t
-    weight = jnp.where(lit, fall * phase * jnp.exp(-rho * kappa * path), 0.0)
+    if fog is None:
+        path = t_p[..., None] + h[..., None] * (1.0 + s) / c  # s + t
+        weight = jnp.where(lit, fall * phase * jnp.exp(-rho * kappa * path), 0.0)
+    else:  # d(P) and the optical depths toward the light and the eye replace the lengths s and t
+        t_s = t_p[..., None] + h[..., None] * s / c  # the samples' t (tan phi = s / c)
+        # stored once: the density feeds both the view depth's matrix product and the weight, and
+        # XLA's CPU fusion would otherwise redo its eight gathers in each
+        dens = materialize(lambda g, ts: g.at_xyz(*(eye[i] + ts * dirs[..., i:i + 1] for i in range(3))), fog.grid, t_s)
+        if count is not None:
+            dens = jnp.where(active_s, dens, 0.0)
+        tau_l = fog.light.lookup(2.0 * u_raw - 1.0, 2.0 * v_raw - 1.0, dist)
+        # the sample's cell of view ray: t at its angle -+ step/2 (tan of a sum)
+        ch, sh = _cos_sin(0.5 * step)
+        ch, sh = ch[..., None], sh[..., None]
+        hh, tp = h[..., None], t_p[..., None]
+        left = tp + hh * (s * ch - c * sh) / jnp.maximum(c * ch + s * sh, 1e-7)
+        right = tp + hh * (s * ch + c * sh) / jnp.maximum(c * ch - s * sh, 1e-7)
+        c0, s0 = _cos_sin(phi0)
+        c1, s1 = _cos_sin(phi1)
+        e0 = t_p + h * s0 / jnp.maximum(c0, 1e-7)
+        e1 = t_p + h * s1 / jnp.maximum(c1, 1e-7)
+        ends = _view_depth_along(fog.view, eye, jnp.stack([dirs, dirs]), jnp.stack([e0, e1]))  # one lookup
+        tau_v = _anchored_view_depth(dens, left, right, t_s, e0, e1, ends[0], ends[1])
+        weight = jnp.where(lit, fall * phase * dens * jnp.exp(-rho * kappa * (tau_l + tau_v)), 0.0)
     scale = rho * step / h
     if baked is None:
         return outer(jnp.sum(weight, axis=-1) * scale, light.intensity)
@@ -212,9 +274,78 @@ def primary_hits(scene: ShaftsScene):
     return dirs, t_hit, normals, albedo, hit_point(eye, dirs, t_hit, far=FAR)
 
 
+class _Frame(eqx.Module):
+    """What every light's in-scattering shares: primary rays and hits, shadow maps, a density
+    grid's volumes, the surfaces' shading."""
+
+    dirs: Array
+    surface_t: Array
+    maps: tuple
+    fog: FogVolumes | None
+    surface: Array
+
+
+def _frame(scene: ShaftsScene, *, shadow_map: int | None, surface_shadows: str, fog_nodes) -> _Frame:
+    # stored once: XLA on CPU otherwise recasts the primary rays inside each of their consumers
+    dirs, t_hit, normals, albedo, points = materialize(primary_hits, scene)
+    res = scene.render.shadow_map if shadow_map is None else int(shadow_map)
+    # stored too: else each surface lookup recasts its texel's ray (XLA fuses the map into the gather)
+    maps = materialize(functools.partial(shadow_maps, resolution=res), scene)
+    visibility = surface_visibility(scene, maps, surface_shadows)
+    # the density grid's optical-depth volumes (stored once, like the maps)
+    fog = None if scene.medium.density is None else materialize(
+        functools.partial(fog_volumes, nodes=fog_nodes), scene)
+    if fog is None:
+        surface = surface_term(scene, points, normals, albedo, t_hit, visibility)
+    else:
+        surface = surface_term(scene, points, normals, albedo, t_hit, visibility, light_depth=fog.light_depth,
+                               view_depth=fog.view_depth(scene, dirs, jnp.where(jnp.isfinite(t_hit), t_hit, 0.0)))
+    surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
+    return _Frame(dirs, surface_t, maps, fog, surface)
+
+
+def _light_scatters(scene: ShaftsScene, frame: _Frame, *, samples: int, bake: int):
+    """(scatter(dirs, t0, t1), t0, t1) of every light: its `equiangular_scattering` and cone intervals."""
+    rho, kappa, K = scene.medium.rho, scene.medium.kappa, scene.medium.K
+    for index, (light, sm) in enumerate(zip(scene.lights, frame.maps)):
+        depth = jax.lax.stop_gradient(sm.depth)
+        baked = bake_light_map(light, bake=bake)
+        reach = light_reach(scene, light)
+        t0, t1 = materialize(functools.partial(cone_intervals, scene, light), frame.dirs, frame.surface_t, reach)
+        ray_fog = None if frame.fog is None else frame.fog.for_light(index)
+        yield (functools.partial(equiangular_scattering, light, depth, baked, scene.camera.eye, rho=rho, kappa=kappa,
+                                 K=K, bias=scene.render.shadow_bias, samples=samples, fog=ray_fog), t0, t1)
+
+
+def equiangular_ladder(scene: ShaftsScene, groups: tuple[tuple[int, ...], ...], reference: int, *,
+                       shadow_map: int | None = 512, bake: int = _BAKE,
+                       fog_nodes: int | tuple[int, int] | None = None, **_unused
+                       ) -> tuple[list[Float[Array, "H W 3"]], Float[Array, "H W 3"]]:
+    """The in-scattered light of `scene` at each sample count of `groups` and at `reference`
+    samples, as `render_equiangular` renders it, sharing the rays, maps and volumes: what
+    `choose_counts` measures on its proxy. The counts of a group share one compiled kernel of
+    `max(group)` slots (the first n used, under `lax.map`); every ray is evaluated (no pruning:
+    proxies are small). Returns (images in the order of the groups' counts, the reference)."""
+    frame = _frame(scene, shadow_map=shadow_map, surface_shadows="map", fog_nodes=fog_nodes)
+    images = []
+    for group in groups:
+        capacity = max(group)
+
+        def at_count(n, capacity=capacity):
+            return sum(scatter(frame.dirs, t0, t1, count=n)
+                       for scatter, t0, t1 in _light_scatters(scene, frame, samples=capacity, bake=bake))
+
+        images += list(jax.lax.map(at_count, jnp.asarray(group, dtype=frame.dirs.dtype)))
+    ref = sum(scatter(frame.dirs, t0, t1) for scatter, t0, t1 in _light_scatters(scene, frame, samples=reference,
+                                                                                bake=bake))
+    return images, ref
+
+
 def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int | None = 512,
                        surface_shadows: str = "map", chunk: int = 8192, prune: bool = True,
-                       bake: int = _BAKE, return_parts: bool = False) -> Float[Array, "H W 3"]:
+                       bake: int = _BAKE, fog_nodes: int | tuple[int, int] | None = None,
+                       return_parts: bool = False
+                       ) -> Float[Array, "H W 3"]:
     """Render `scene` (H, W, 3 linear RGB): surfaces (shadow rays, two-sided Lambert, extinction)
     plus every light's in-scattering by `equiangular_scattering` with `samples` per pixel and light
     (24: about 1 % relative RMS on the five-spot stage; 16: about 2.4 %).
@@ -229,35 +360,20 @@ def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int
     prune: evaluate each light only on the rays that pass through its cone in front of the visible
     surface (`active_rays_map`, in chunks of `chunk` rays); prune=False evaluates every pixel in one
     vectorized pass (same image; a smaller graph for tiny images and tests). bake:
-    light-map refinement factor (`bake_light_map`). return_parts: also return (surface, per-light
-    in-scattering list). Jittable, differentiable; no retrace when light or medium values change.
+    light-map refinement factor (`bake_light_map`). fog_nodes: (directions across, distances) of
+    a density grid's optical-depth volumes, or one number for both (default `volume_nodes`). return_parts: also return
+    (surface, per-light in-scattering list). Jittable, differentiable; no retrace when light or medium values change.
     """
-    rho, kappa, K = scene.medium.rho, scene.medium.kappa, scene.medium.K
-    eye = scene.camera.eye
-    # stored once: XLA on CPU otherwise recasts the primary rays inside each of their consumers
-    dirs, t_hit, normals, albedo, points = materialize(primary_hits, scene)
-    res = scene.render.shadow_map if shadow_map is None else int(shadow_map)
-    # stored too: else each surface lookup recasts its texel's ray (XLA fuses the map into the gather)
-    maps = materialize(functools.partial(shadow_maps, resolution=res), scene)
-    visibility = surface_visibility(scene, maps, surface_shadows)
-    surface = surface_term(scene, points, normals, albedo, t_hit, visibility)
-    surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
-    bias = scene.render.shadow_bias
-
-    per_light, image = [], surface
-    for light, sm in zip(scene.lights, maps):
-        depth = jax.lax.stop_gradient(sm.depth)
-        baked = bake_light_map(light, bake=bake)
-        reach = light_reach(scene, light)
-        t0, t1 = materialize(functools.partial(cone_intervals, scene, light), dirs, surface_t, reach)
-        scatter = functools.partial(equiangular_scattering, light, depth, baked, eye, rho=rho, kappa=kappa, K=K,
-                                    bias=bias, samples=samples)
+    frame = _frame(scene, shadow_map=shadow_map, surface_shadows=surface_shadows, fog_nodes=fog_nodes)
+    per_light, image = [], frame.surface
+    for scatter, t0, t1 in _light_scatters(scene, frame, samples=samples, bake=bake):
         if not prune:
-            per_light.append(scatter(dirs, t0, t1))
+            per_light.append(scatter(frame.dirs, t0, t1))
         elif return_parts:
-            per_light.append(active_rays_map(scatter, dirs, t0, t1, chunk=chunk))
+            per_light.append(active_rays_map(scatter, frame.dirs, t0, t1, chunk=chunk))
         else:  # one buffer for all lights (no per-light image to add up)
-            image = active_rays_map(scatter, dirs, t0, t1, chunk=chunk, into=image)
+            image = active_rays_map(scatter, frame.dirs, t0, t1, chunk=chunk, into=image)
+    surface = frame.surface
 
     if per_light:
         image = surface + sum(per_light)

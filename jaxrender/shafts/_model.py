@@ -21,6 +21,7 @@ from ..geometry import bounding_points, nearest_distance
 from ..lights import SpotLight
 from ..maths import dot, safe_norm
 from ..shadows import ShadowMap, shadow_test
+from ._density import box_interval
 from ._scene import ShaftsScene
 
 S_FLOOR = 1e-6  # smallest light distance used in 1/s^2 (a sample exactly at the light)
@@ -150,21 +151,30 @@ def cone_interval(origin: Float[ArrayLike, "3"], direction: Float[ArrayLike, "*B
 def cone_intervals(scene: ShaftsScene, light: SpotLight, dirs: Float[Array, "*B 3"], surface_t: Float[Array, "*B"],
                    reach: Float[Array, ""], *, margin: float = 1e-3) -> tuple[Float[Array, "*B"], Float[Array, "*B"]]:
     """Per-pixel [t0, t1] of the view ray inside `light`'s cone (widened by `margin` radians, a
-    conservative bound: the integrand itself applies the exact cone), cut at the visible surface."""
+    conservative bound: the integrand itself applies the exact cone), cut at the visible surface
+    and, in fog with a density grid, to the grid's box (there is no fog outside it)."""
     _, _, axis = light.frame()
     cos_c = jnp.cos(jnp.minimum(light.cutoff + margin, 0.5 * jnp.pi - 1e-3))
     t0, t1 = cone_interval(scene.camera.eye, dirs, light.position, axis, cos_c, reach)
     t0 = jnp.maximum(t0, 0.0)
     t1 = jnp.minimum(t1, surface_t)
+    grid = scene.medium.density
+    if grid is not None:
+        t_in, t_out = box_interval(grid.box_min, grid.box_max, scene.camera.eye, dirs)
+        t0, t1 = jnp.maximum(t0, t_in), jnp.minimum(t1, t_out)
     return t0, jnp.maximum(t1, t0)
 
 
 def surface_term(scene: ShaftsScene, points: Float[Array, "*B 3"], normals: Float[Array, "*B 3"],
-                 albedo: Float[Array, "*B 3"], surface_t: Float[Array, "*B"], visibility, *, quantize_bits: int = 0
-                 ) -> Float[Array, "*B 3"]:
+                 albedo: Float[Array, "*B 3"], surface_t: Float[Array, "*B"], visibility, *, quantize_bits: int = 0,
+                 light_depth=None, view_depth: Float[Array, "*B"] | None = None) -> Float[Array, "*B 3"]:
     """I_o exp(-rho kappa T): two-sided Lambert albedo/pi * sum_lights I |cos| / s^2 exp(-rho kappa s) H,
     attenuated toward the eye; 0 where the ray hits nothing. `visibility(light_index, points,
-    normals, s)` gives H at the surface points (shadow rays or a shadow map)."""
+    normals, s)` gives H at the surface points (shadow rays or a shadow map).
+
+    With a density grid the path lengths s and T become optical depths (integrals of d):
+    `light_depth(light_index, points)` along the path from each light, `view_depth` along the
+    view ray to the surface (both required then)."""
     sigma = scene.medium.sigma_t
     total = jnp.zeros_like(points)
     for index, light in enumerate(scene.lights):
@@ -172,10 +182,11 @@ def surface_term(scene: ShaftsScene, points: Float[Array, "*B 3"], normals: Floa
         cos_i = jnp.abs(dot(w, normals))
         s_safe = jnp.maximum(s, S_FLOOR)
         H = visibility(index, points, normals, s)
-        scale = cos_i * H * jnp.exp(-sigma * s) / (s_safe * s_safe)
+        tau = s if light_depth is None else light_depth(index, points)
+        scale = cos_i * H * jnp.exp(-sigma * tau) / (s_safe * s_safe)
         total = total + I * scale[..., None]
     hit = jnp.isfinite(surface_t)
-    T = jnp.where(hit, surface_t, 0.0)
+    T = jnp.where(hit, surface_t, 0.0) if view_depth is None else jnp.where(hit, view_depth, 0.0)
     radiance = albedo / jnp.pi * total * jnp.exp(-sigma * T)[..., None]
     return jnp.where(hit[..., None], radiance, 0.0)
 

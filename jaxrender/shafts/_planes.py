@@ -26,6 +26,12 @@ Gradients: with tables, values come from the tables and the derivative w.r.t. rh
 from the closed-form F and h at the looked-up coordinates (they differ by the tables'
 interpolation error); without tables (`tables=False`) the gradient is exactly that of the image.
 
+Fog with a density grid (issue 24): g becomes F(alpha) h(s, t) D with the density factor
+D = d(P) exp(rho kappa ((s + t) - (tau_l + tau_v))) evaluated per pixel at every plane (a 3-D
+texture lookup the 2001 hardware lacked; float also in B-bit mode): d from the grid, the optical
+depths tau_l toward the light and tau_v toward the eye from the volumes of `fog_volumes`. So the
+paper's tables stay as they are and D = 1 to rounding for a grid of ones.
+
 Pruning: the image is cut into tiles; a tile is processed (`lax.cond` inside `lax.map`) only when
 some pixel's ray passes through the light's cone in front of the visible surface (the per-pixel
 ray/cone interval), so pixels outside every cone's screen footprint cost (almost) nothing, and the
@@ -49,6 +55,7 @@ from ..lights import SpotLight
 from ..maths import atan_nonneg, outer, safe_norm, sum_short
 from ..shadows import ShadowMap
 from ..textures import bilinear, quantize
+from ._fog import RayFog, fog_volumes
 from ._model import (
     FAR,
     S_FLOOR,
@@ -215,6 +222,8 @@ class LightPlanes(eqx.Module):
     shadow_bias: Float[Array, ""]
     resolution: int = eqx.field(static=True)
     uniform_map: bool = eqx.field(static=True)
+    fog: RayFog | None = None             # a density grid's lookups (None: uniform fog)
+    sub_count: Int[Array, ""] | None = None  # sub-planes in use when counts are traced (None: cfg.subplanes)
 
 
 class TileRays(eqx.Module):
@@ -245,15 +254,17 @@ class PlaneConfig(eqx.Module):
 
 
 def light_planes(scene: ShaftsScene, view: ViewRays, light: SpotLight, sm: ShadowMap, cfg: PlaneConfig, *,
-                 planes: int) -> LightPlanes:
-    """Planes spanning the view depths the light's cone reaches, and the light's parameters."""
+                 planes: int, fog: RayFog | None = None, counts=None) -> LightPlanes:
+    """Planes spanning the view depths the light's cone reaches, and the light's parameters.
+    `counts`: traced (planes, sub-planes) in use, at most `planes` and cfg.subplanes (the slots)."""
     dtype = view.dirs.dtype
     reach = light_reach(scene, light)
     r_near, r_far = cone_depth_range(light, reach, view.eye, view.forward)
-    dr = (r_far - r_near) / planes
+    n_used, m_used = (planes, cfg.subplanes) if counts is None else counts
+    dr = (r_far - r_near) / n_used
     plane_ids = jnp.arange(cfg.n_chunks * cfg.chunk)
     r = r_near + (plane_ids.astype(dtype) + 0.5) * dr  # planes past `planes` are masked
-    sub = ((jnp.arange(cfg.subplanes, dtype=dtype) + 0.5) / cfg.subplanes - 0.5)
+    sub = ((jnp.arange(cfg.subplanes, dtype=dtype) + 0.5) / m_used - 0.5)
     depths = r[:, None] + sub[None, :] * dr
     lx, ly, lz = light.frame()
     rel_eye = view.eye - light.position
@@ -272,12 +283,13 @@ def light_planes(scene: ShaftsScene, view: ViewRays, light: SpotLight, sm: Shado
     return LightPlanes(
         position=light.position, frame=jnp.stack([lx, ly, lz]),
         local_eye=jnp.stack([_dot(rel_eye, lx), _dot(rel_eye, ly), _dot(rel_eye, lz)]),
-        r=r, on=plane_ids < planes, r_near=r_near, dr=dr, depths=depths, grids=grids,
+        r=r, on=plane_ids < n_used, r_near=r_near, dr=dr, depths=depths, grids=grids,
         tan_cutoff=jnp.tan(cut), cutoff=cut, beam=beam,
         inv_ramp=jnp.where(ramp_w > 1e-9, 1.0 / jnp.where(ramp_w > 1e-9, ramp_w, 1.0), 0.0),
         light_map=lmap / map_max, scale_rgb=light.intensity * map_max,
         depth=jax.lax.stop_gradient(sm.depth).reshape((-1,)), shadow_bias=scene.render.shadow_bias,
-        resolution=sm.resolution, uniform_map=lmap.shape[0] * lmap.shape[1] == 1)
+        resolution=sm.resolution, uniform_map=lmap.shape[0] * lmap.shape[1] == 1, fog=fog,
+        sub_count=None if counts is None else jnp.asarray(m_used))
 
 
 def tile_rays(view: ViewRays, lp: LightPlanes, per_pixel: Array, cfg: PlaneConfig, row0, col0) -> TileRays:
@@ -306,6 +318,22 @@ def _plane_g(view: ViewRays, lp: LightPlanes, cfg: PlaneConfig, rays: TileRays, 
     return cfg.tables.g(a_pl, s_pl, t_pl)
 
 
+def _density_factor(view: ViewRays, lp: LightPlanes, rays: TileRays, t_pl: Array, sigma) -> Array:
+    """D = d(P) exp(sigma ((s + t) - (tau_l + tau_v))) at the planes' points P = eye + t_pl dirs
+    (pc, ty, tx): the grid's correction of the uniform fog's g (module docstring)."""
+    fog = lp.fog
+    ld = rays.light_dirs
+    x, y, z = (lp.local_eye[i] + t_pl * ld[None, :, :, i] for i in range(3))
+    s = jnp.sqrt(jnp.maximum(x * x + y * y + z * z, S_FLOOR * S_FLOOR))
+    front = z > 1e-9
+    inv = 1.0 / (jnp.where(front, z, 1.0) * lp.tan_cutoff)
+    tau_l = fog.light.lookup(jnp.where(front, x * inv, 0.0), jnp.where(front, y * inv, 0.0), s)
+    p = [view.eye[i] + t_pl * rays.dirs[None, :, :, i] for i in range(3)]
+    tau_v = fog.view.lookup_points(jnp.stack(p, axis=-1))
+    exponent = jnp.minimum(sigma * ((s + t_pl) - (tau_l + tau_v)), 60.0)  # h carries exp(-sigma (s + t))
+    return fog.grid.at_xyz(*p) * jnp.exp(exponent)
+
+
 def chunk_scattering(view: ViewRays, lp: LightPlanes, cfg: PlaneConfig, rays: TileRays, c) -> Float[Array, "ty tx 3"]:
     """In-scattered light of planes [c*pc, (c+1)*pc) on one tile (eqs. 7-9)."""
     pc, B = cfg.chunk, cfg.quantize_bits
@@ -314,6 +342,8 @@ def chunk_scattering(view: ViewRays, lp: LightPlanes, cfg: PlaneConfig, rays: Ti
     on_c = jax.lax.dynamic_slice_in_dim(lp.on, c * pc, pc)
     depths_c = jax.lax.dynamic_slice_in_dim(lp.depths, c * pc, pc, axis=0)
     g = _plane_g(view, lp, cfg, rays, c, r_c, tau_unit)  # (pc, ty, tx)
+    if lp.fog is not None:
+        g = g * _density_factor(view, lp, rays, r_c[:, None, None] * tau_unit[None], cfg.tables.rho * cfg.tables.kappa)
     # sub-sample planes: H * I_l averaged into J (component arithmetic, fused by XLA)
     ld = rays.light_dirs
     tau = depths_c[:, :, None, None] * tau_unit[None, None]  # (pc, m, ty, tx)
@@ -337,9 +367,13 @@ def chunk_scattering(view: ViewRays, lp: LightPlanes, cfg: PlaneConfig, rays: Ti
     occ = lp.depth[row * res + col]
     ok = (front & (theta < lp.cutoff) & (s <= occ + lp.shadow_bias) & (tau < rays.surface_t[None, None])
           & on_c[:, None, None, None])
+    if lp.sub_count is not None:  # traced counts: the sub-plane slots in use
+        ok = ok & (jnp.arange(cfg.subplanes) < lp.sub_count)[None, :, None, None]
     ok = checkpoint_name(ok, "shaft_visible")  # saved for reverse mode (see `light_scattering`)
     weight = jnp.where(ok, fall, 0.0)
     dt = lp.dr * tau_unit  # (ty, tx)
+    if lp.sub_count is not None:
+        weight = weight * (cfg.subplanes / lp.sub_count)  # the means below divide by the slots
     if lp.uniform_map and not B:
         # one colour for the whole cone: sum the planes in one channel, colour at the end
         return outer(sum_short(sum_short(weight, 1) * g, 0) * (dt / cfg.subplanes), lp.scale_rgb)
@@ -433,7 +467,9 @@ def view_rays(scene: ShaftsScene, tiling: Tiling, mesh: tuple[int, int]) -> View
 def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, quantize_bits: int = 0,
                   mesh: tuple[int, int] = (15, 10), g_per_pixel: bool = False, tables: bool = True,
                   tile: tuple[int, int] = (16, 32), plane_chunk: int = 6, prune: bool = True,
-                  surface_shadows: str = "map", return_parts: bool = False) -> Float[Array, "H W 3"]:
+                  surface_shadows: str = "map", fog_nodes: int | tuple[int, int] | None = None,
+                  return_parts: bool = False,
+                  maps: tuple[ShadowMap, ...] | None = None, counts=None) -> Float[Array, "H W 3"]:
     """Render `scene` (H, W, 3 linear RGB) with the sample-plane method (see module docstring).
 
     planes, subplanes: n and m of the paper (default 30 x 6). quantize_bits: 0 = float, 8 = the
@@ -445,13 +481,19 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
     evaluates every pixel and plane in one vectorized pass: a much smaller graph (faster
     compilation, e.g. for small images and gradients) at the cost of the pruned work.
     surface_shadows: "map" (shadow maps with a slope-scaled bias, as the hardware does) or "rays"
-    (exact shadow rays, as the ray march). return_parts: also return (surface, per-light in-scattering list).
+    (exact shadow rays, as the ray march). fog_nodes: (directions across, distances) of a density
+    grid's optical-depth volumes, or one number for both (default `volume_nodes`). return_parts:
+    also return (surface, per-light in-scattering list).
+    maps: the lights' shadow maps when several renders share them (default: rendered here at the
+    scene's `render.shadow_map`). counts: traced (planes, sub-planes) in use, at most `planes` and
+    `subplanes`, which then only size the slots (one compiled function for many counts, as
+    `choose_counts` needs).
     """
     if quantize_bits and (not tables or g_per_pixel):
         raise ValueError("quantize_bits > 0 emulates the hardware: it needs tables=True and g_per_pixel=False")
     B = int(quantize_bits)
     cam = scene.camera
-    maps = shadow_maps(scene, scene.render.shadow_map)
+    maps = shadow_maps(scene, scene.render.shadow_map) if maps is None else maps
     visibility = surface_visibility(scene, maps, surface_shadows)
     dirs = cam.primary_rays()
     dtype = dirs.dtype
@@ -459,7 +501,13 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
     points = hit_point(cam.eye, dirs, t_hit, far=FAR)
     surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
     white = jnp.asarray(scene.render.display_white, dtype=dtype)
-    surface = surface_term(scene, points, normals, albedo, t_hit, visibility, quantize_bits=B)
+    fog = fog_volumes(scene, nodes=fog_nodes)
+    if fog is None:
+        surface = surface_term(scene, points, normals, albedo, t_hit, visibility, quantize_bits=B)
+    else:
+        surface = surface_term(scene, points, normals, albedo, t_hit, visibility, quantize_bits=B,
+                               light_depth=fog.light_depth,
+                               view_depth=fog.view_depth(scene, dirs, jnp.where(jnp.isfinite(t_hit), t_hit, 0.0)))
     frame = quantize(surface, B, scale=white) if B else surface
 
     ty, tx = tile if prune else (cam.height, cam.width)  # without pruning: one tile, all planes at once
@@ -468,9 +516,11 @@ def render_planes(scene: ShaftsScene, *, planes: int = 30, subplanes: int = 6, q
     cfg = PlaneConfig(phase_tables(scene, B, dtype, tables=tables), white, tiling, subplanes, chunk,
                       -(-planes // chunk), B, g_per_pixel)
     view = view_rays(scene, tiling, mesh)
-    per_light = [light_scattering(scene, view, light_planes(scene, view, light, sm, cfg, planes=planes), light, cfg,
-                                  surface_t, prune=prune)
-                 for light, sm in zip(scene.lights, maps)]
+    per_light = [light_scattering(scene, view, light_planes(scene, view, light, sm, cfg, planes=planes,
+                                                            fog=None if fog is None else fog.for_light(index),
+                                                            counts=counts),
+                                  light, cfg, surface_t, prune=prune)
+                 for index, (light, sm) in enumerate(zip(scene.lights, maps))]
     image = frame + sum(per_light)
     if B:
         image = jnp.minimum(image, white)

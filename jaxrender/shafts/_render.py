@@ -2,6 +2,7 @@
 
     image = shafts.render(scene)                                   # equiangular (default), 1 sample per pixel
     image = shafts.render(scene, method="planes", samples_per_pixel=16, planes=30, subplanes=6)
+    image = shafts.render(scene, target_error=0.02)                # counts chosen for 2 % (`choose_counts`)
 
 `samples_per_pixel` = k*k renders a regular k x k grid of sub-pixel positions per pixel and
 averages them (a box filter, as Mitsuba's `box` reconstruction filter): the scene is rendered at
@@ -13,6 +14,7 @@ deterministic, and differentiable like the method itself.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
@@ -20,6 +22,7 @@ import jax
 from jaxtyping import Array, Float
 
 from ._equiangular import render_equiangular
+from ._error_target import choose_counts
 from ._planes import render_planes
 from ._raymarch import render_raymarch
 from ._scene import ShaftsScene
@@ -60,11 +63,26 @@ def supersample(render_fn: Callable[[ShaftsScene], object], scene: ShaftsScene, 
     return jax.tree_util.tree_map(lambda x: _box_down(x, k), out)
 
 
-def render(scene: ShaftsScene, *, method: str = DEFAULT_METHOD, samples_per_pixel: int = 1, **options
-           ) -> Float[Array, "H W 3"]:
+@functools.lru_cache(maxsize=16)
+def _jitted(method: str, samples_per_pixel: int, options: tuple):
+    fn, opts = METHODS[method], dict(options)
+    return jax.jit(lambda s: supersample(lambda t: fn(t, **opts), s, samples_per_pixel))
+
+
+def render(scene: ShaftsScene, *, method: str = DEFAULT_METHOD, samples_per_pixel: int = 1,
+           target_error: float | None = None, **options) -> Float[Array, "H W 3"]:
     """Render `scene` with `method` ("equiangular", "planes" or "raymarch"; its keyword options
-    pass through, e.g. samples=, planes=, quantize_bits=) and `samples_per_pixel` (k*k)."""
+    pass through, e.g. samples=, planes=, quantize_bits=) and `samples_per_pixel` (k*k).
+
+    target_error: instead of given counts, the cheapest counts predicted to keep the in-scattered
+    light within this relative RMS of the converged result (`choose_counts`: an estimate on a small
+    proxy of the scene); then the frame is rendered jitted. Needs concrete values: call it outside
+    `jax.jit` (or call `choose_counts` there and pass its options)."""
     if method not in METHODS:
         raise ValueError(f"unknown shafts method {method!r}: use one of {', '.join(METHODS)}")
+    if target_error is not None:
+        choice = choose_counts(scene, target_error, method=method, **options)
+        options = {**options, **choice.options}
+        return _jitted(method, samples_per_pixel, tuple(sorted(options.items())))(scene)
     fn = METHODS[method]
     return supersample(lambda s: fn(s, **options), scene, samples_per_pixel)

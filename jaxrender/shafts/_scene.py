@@ -10,23 +10,28 @@ from ..camera import Camera
 from ..geometry import Quads, Spheres
 from ..lights import SpotLight, unstack_spotlights
 from ..shadows import ShadowMap, render_shadow_map
+from ._density import DensityGrid
 
 
 class Medium(eqx.Module):
-    """Homogeneous fog (paper 000): density `rho`, extinction coefficient `kappa`, phase scale `K`.
+    """Fog (paper 000): density `rho`, extinction coefficient `kappa`, phase scale `K`, and
+    optionally a `density` grid d(x) (issue 24, `DensityGrid`) that varies it in space.
 
-    Extinction per unit length is `rho*kappa`; scattering per unit length per steradian is
-    `rho*F(a)` with `F(a) = K (1 + 9 cos^16(a/2))`. (The image depends on `rho*kappa` and `rho*K` only.)
+    Extinction per unit length is `rho*kappa*d(x)`; scattering per unit length per steradian is
+    `rho*d(x)*F(a)` with `F(a) = K (1 + 9 cos^16(a/2))`; d = 1 everywhere without a grid (uniform
+    fog), d = 0 outside the grid's box with one. (The image depends on `rho*kappa*d` and `rho*K*d` only.)
     """
 
     rho: Float[Array, ""]
     kappa: Float[Array, ""]
     K: Float[Array, ""]
+    density: DensityGrid | None = None
 
-    def __init__(self, rho=1.0, kappa=0.1, K=0.003):
+    def __init__(self, rho=1.0, kappa=0.1, K=0.003, density: DensityGrid | None = None):
         self.rho = jnp.asarray(rho, dtype=float)
         self.kappa = jnp.asarray(kappa, dtype=float)
         self.K = jnp.asarray(K, dtype=float)
+        self.density = density
 
     @property
     def sigma_t(self) -> Float[Array, ""]:

@@ -1,7 +1,8 @@
 """`jaxrender shafts SCENE.json --out OUT.exr|.png`: light shafts in fog (paper 000).
 
 A thin layer over `jaxrender.app.scenes.load_shafts_scene` and `jaxrender.shafts.render`
-(methods `equiangular`, the default, `planes` and `raymarch`; `--spp` antialiasing for each).
+(methods `equiangular`, the default, `planes` and `raymarch`; `--spp` antialiasing for each;
+`--error E`: the counts chosen by `jaxrender.shafts.choose_counts`, the choice printed).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import jax
 import numpy as np
 
 from jaxrender.io import InputError, write_image
-from jaxrender.shafts import DEFAULT_METHOD, METHODS, render
+from jaxrender.shafts import DEFAULT_METHOD, METHODS, choose_counts, render
 
 from ..scenes import check_image_size, load_shafts_scene
 from .timed import add_time_argument, render_timed
@@ -32,13 +33,17 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="antialiasing: N samples per PIXEL, a regular k x k sub-pixel grid (N = k*k), box "
                              "filter; default: the scene's render.spp (1). Not --samples, which counts samples "
                              "along each view ray")
-    parser.add_argument("--planes", type=int, default=30, help="sample planes per light (default 30)")
-    parser.add_argument("--subplanes", type=int, default=6, help="sub-sample planes per interval (default 6)")
+    parser.add_argument("--planes", type=int, default=None, help="sample planes per light (default 30)")
+    parser.add_argument("--subplanes", type=int, default=None, help="sub-sample planes per interval (default 6)")
     parser.add_argument("--quantize-bits", type=int, default=0,
                         help="hardware emulation: bits of tables, maps and frame buffer (0 = float, 8 = paper)")
     parser.add_argument("--samples", type=int, default=None,
                         help="samples along each view ray and light: equiangular (default 24) and raymarch "
                              "(default 180); see --spp for samples per pixel")
+    parser.add_argument("--error", type=float, default=None, metavar="E",
+                        help="choose --samples (or --planes and --subplanes) so that the in-scattered light is "
+                             "predicted within relative RMS E of the converged result (e.g. 0.02), from a quick "
+                             "estimate on a small proxy of the scene; the choice is printed")
     add_time_argument(parser)
 
 
@@ -54,6 +59,12 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(None, f"--{name} must be >= 1")
     if args.spp is not None and math.isqrt(args.spp) ** 2 != args.spp:
         raise InputError(None, f"--spp must be a perfect square (1, 4, 9, 16, ...), got {args.spp}")
+    if args.error is not None:
+        if not 0 < args.error < 1:
+            raise InputError(None, f"--error must be a relative error between 0 and 1 (e.g. 0.02), got {args.error}")
+        given = [f"--{n}" for n in ("samples", "planes", "subplanes") if getattr(args, n) is not None]
+        if given:
+            raise InputError(None, f"--error chooses the counts itself: drop {' and '.join(given)}")
     if not 0 <= args.quantize_bits <= 16:
         raise InputError(None, "--quantize-bits must be between 0 and 16")
     for name in ("width", "height"):
@@ -66,9 +77,15 @@ def run(args: argparse.Namespace) -> int:
     spp = scene.render.spp if args.spp is None else args.spp
     check_image_size(scene.camera.width, scene.camera.height, spp)
     if args.method == "planes":
-        options = dict(planes=args.planes, subplanes=args.subplanes, quantize_bits=args.quantize_bits)
+        options = dict(planes=30 if args.planes is None else args.planes,
+                       subplanes=6 if args.subplanes is None else args.subplanes, quantize_bits=args.quantize_bits)
     else:
         options = {} if args.samples is None else dict(samples=args.samples)  # the method's default
+    if args.error is not None:
+        fixed = {k: v for k, v in options.items() if k not in ("planes", "subplanes")}
+        choice = choose_counts(scene, args.error, method=args.method, **fixed)
+        options.update(choice.options)
+        print(choice.describe())
     fn = jax.jit(lambda s: render(s, method=args.method, samples_per_pixel=spp, **options))
     image = render_timed(lambda: jax.block_until_ready(fn(scene)), args.time)
     write_image(out, np.asarray(image, dtype=np.float32))

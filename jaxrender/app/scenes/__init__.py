@@ -9,5 +9,8 @@ from .shafts_file import ShaftsSceneWarning as ShaftsSceneWarning
 from .shafts_file import check_image_size as check_image_size
 from .shafts_file import load_shafts_scene as load_shafts_scene
 from .shafts_file import shafts_scene_from_dict as shafts_scene_from_dict
+from .stage import GROUND_FOG_BOX as GROUND_FOG_BOX
+from .stage import ground_fog as ground_fog
 from .stage import load_stage_scene as load_stage_scene
 from .stage import stage_scene_dict as stage_scene_dict
+from .stage import with_ground_fog as with_ground_fog

@@ -1,8 +1,13 @@
-"""Loading and validating light-shaft scene files (design.md, "Scene file for light shafts").
+"""Loading and validating light-shaft scene files (design.md, "Scene file for light shafts", and
+its extensions: `render.spp` (README) and `medium.density` (docs/fog.md)).
 
-Every problem of a file is reported at once (`jaxrender.io.InputErrors`, read by `jaxrender.io.Fields`),
-one line each: `scene.json: spotlights[0].cutoff_deg: expected a number, got 'wide'`; unknown keys are
-problems too. A medium with 8*pi*K > kappa (scattering more than it extinguishes) gives a
+`medium.density` = {"grid": "density.npy", "box_min": [x, y, z], "box_max": [x, y, z]}: a float
+.npy array (nz, ny, nx) of values >= 0 at voxel centres, relative to the scene file
+(`jaxrender.shafts.DensityGrid`).
+
+Every problem of a file is reported at once (`jaxrender.io.InputErrors`, read by
+`jaxrender.io.Fields`), one line each: `scene.json: spotlights[0].cutoff_deg: expected a number,
+got 'wide'`; unknown keys are problems too. A medium with 8*pi*K > kappa (scattering more than it extinguishes) gives a
 `ShaftsSceneWarning`.
 """
 
@@ -22,13 +27,14 @@ from jaxrender.camera import Camera
 from jaxrender.geometry import Quads, Spheres
 from jaxrender.io import Fields, InputError, read_image
 from jaxrender.lights import SpotLight
-from jaxrender.shafts import Medium, RenderSettings, ShaftsScene
+from jaxrender.shafts import DensityGrid, Medium, RenderSettings, ShaftsScene
 
 __all__ = ["load_shafts_scene", "shafts_scene_from_dict", "ShaftsSceneWarning", "RENDER_DEFAULTS", "check_image_size",
-           "MAX_SIDE", "MAX_SAMPLES"]
+           "MAX_SIDE", "MAX_SAMPLES", "MAX_VOXELS"]
 
 MAX_SIDE = 16384  # pixels a side (and texels of a shadow map or table)
 MAX_SAMPLES = 2**26  # width * height * spp: per-sample arrays of up to ~30 values keep int32 indices below 2^31
+MAX_VOXELS = 2**27  # density grid values (flat int32 indices with room to spare; 1 GiB as float64)
 RENDER_DEFAULTS = {"shadow_map": 1024, "shadow_bias": 0.002, "table_size": 256, "spp": 1, "s_min": 0.05,
                    "s_max": 20.0, "t_max": 20.0, "display_white": 1.0}
 
@@ -75,15 +81,69 @@ def _camera(f: Fields) -> Camera | None:
     return None if None in (fov, width, height) else Camera(eye, target, up, fov, width=width, height=height)
 
 
-def _medium(f: Fields) -> Medium | None:
-    f.known(("rho", "kappa", "K"))
+def _grid_values(f: Fields, base_dir: Path) -> np.ndarray | None:
+    """The `grid` array of a density section: a readable .npy of finite values >= 0, shape (nz, ny, nx)."""
+    name = f.string("grid")
+    if name is None:
+        return None
+    path = Path(name) if Path(name).is_absolute() else base_dir / name
+    if not path.is_file():
+        f.problem("grid", f"cannot read density grid {name!r} (no such file)")
+        return None
+    try:
+        with open(path, "rb") as stream:
+            if stream.read(6) != b"\x93NUMPY":
+                f.problem("grid", f"density grid {name!r} is not a .npy file (write it with numpy.save)")
+                return None
+        array = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError, EOFError) as error:
+        f.problem("grid", f"cannot read density grid {name!r} as a .npy array ({error})")
+        return None
+    if not isinstance(array, np.ndarray) or not (np.issubdtype(array.dtype, np.floating)
+                                                 or np.issubdtype(array.dtype, np.integer)):
+        f.problem("grid", f"density grid {name!r} must hold real numbers, not {getattr(array, 'dtype', type(array))}")
+        return None
+    if array.ndim != 3:
+        f.problem("grid", f"density grid {name!r} must be a 3-D array (nz, ny, nx), got shape {tuple(array.shape)}")
+        return None
+    if array.size == 0 or array.size > MAX_VOXELS:
+        f.problem("grid", f"density grid {name!r} has {array.size} values, expected 1 to {MAX_VOXELS}")
+        return None
+    values = np.asarray(array, dtype=np.float64)
+    if not np.all(np.isfinite(values)):
+        f.problem("grid", f"density grid {name!r} has {int(np.count_nonzero(~np.isfinite(values)))} NaN or infinite "
+                          "values")
+        return None
+    if np.any(values < 0):
+        f.problem("grid", f"density grid {name!r} has {int(np.count_nonzero(values < 0))} negative values "
+                          f"(minimum {values.min():.4g}); densities must be >= 0")
+        return None
+    return values
+
+
+def _density(f: Fields, base_dir: Path) -> DensityGrid | None:
+    f.known(("grid", "box_min", "box_max"))
+    values = _grid_values(f, base_dir)
+    lo, hi = f.vector("box_min"), f.vector("box_max")
+    if lo is not None and hi is not None and np.any(hi <= lo):
+        f.problem("box_max", f"must exceed box_min in x, y and z (an empty box: {hi.tolist()} vs {lo.tolist()})")
+        return None
+    if values is None or lo is None or hi is None:
+        return None
+    return DensityGrid(values, lo, hi)
+
+
+def _medium(f: Fields, base_dir: Path) -> Medium | None:
+    f.known(("rho", "kappa", "K", "density"))
     rho, kappa, K = (f.number(key, lo=0.0) for key in ("rho", "kappa", "K"))
-    if None in (rho, kappa, K):
+    has_density = f.raw("density", default=None) is not None
+    density = _density(f.section("density"), base_dir) if has_density else None
+    if None in (rho, kappa, K) or (has_density and density is None):
         return None
     if 8 * math.pi * K > kappa:
         warnings.warn(f"{f.source}: medium: 8*pi*K = {8 * math.pi * K:.4g} > kappa = {kappa:.4g}: the fog scatters "
                       "more light than it extinguishes", ShaftsSceneWarning, stacklevel=3)
-    return Medium(rho, kappa, K)
+    return Medium(rho, kappa, K, density)
 
 
 def _render(f: Fields) -> RenderSettings | None:
@@ -175,13 +235,13 @@ def shafts_scene_from_dict(d: Any, *, base_dir: str | os.PathLike = ".",
                            source: str | os.PathLike = "<scene>") -> ShaftsScene:
     """Validate a parsed scene (design.md contract) and build a `ShaftsScene`.
 
-    `base_dir`: where relative light-map paths are resolved; `source`: the file named in errors.
+    `base_dir`: where relative light-map and density-grid paths are resolved; `source`: the file named in errors.
     Every problem is reported at once (`jaxrender.io.InputErrors`, one `FILE: field: problem` line each).
     """
     doc = Fields.document(d, os.fspath(source))
     doc.known(("camera", "medium", "render", "spotlights", "objects"))
     camera = _camera(doc.section("camera"))
-    medium = _medium(doc.section("medium"))
+    medium = _medium(doc.section("medium"), Path(base_dir))
     render = _render(doc.section("render", required=False))
     light_items = doc.items("spotlights")
     lights = [_spotlight(f, Path(base_dir)) for f in light_items]
@@ -194,7 +254,8 @@ def shafts_scene_from_dict(d: Any, *, base_dir: str | os.PathLike = ".",
 
 
 def load_shafts_scene(path: str | os.PathLike) -> ShaftsScene:
-    """Read and validate a light-shaft scene file (JSON, design.md); light maps are relative to it."""
+    """Read and validate a light-shaft scene file (JSON, design.md); light maps and density grids
+    are relative to it."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "no such file")

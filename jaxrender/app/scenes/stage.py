@@ -3,13 +3,20 @@ spheres on a floor in front of a back wall.
 
 `stage_scene_dict()` is the built-in scene (design.md's scene-file format; light maps are the
 PNGs shipped in `jaxrender/data/`) and `load_stage_scene()` builds it (the gallery renders it:
-`jaxrender.app.gallery.stage`).
+`jaxrender.app.gallery.stage`). `ground_fog(time)` is the stage's drifting ground fog (issue 24):
+a density grid over the stage floor whose pattern moves with `time`; `with_ground_fog(scene,
+time)` puts it into a loaded stage (same shapes every frame: one compilation for an animation).
 """
 
 from __future__ import annotations
 
 import copy
 from pathlib import Path
+
+import equinox as eqx
+import numpy as np
+
+from jaxrender.shafts import DensityGrid, Medium
 
 from .shafts_file import shafts_scene_from_dict
 
@@ -52,3 +59,30 @@ def load_stage_scene(*, width: int | None = None, height: int | None = None):
     """The stage as a `ShaftsScene`, optionally at another image size."""
     scene = shafts_scene_from_dict(stage_scene_dict(), base_dir=DATA, source="<built-in stage>")
     return scene.with_size(width, height) if (width or height) else scene
+
+
+GROUND_FOG_BOX = ((-6.5, -0.05, -5.0), (6.5, 3.0, 3.2))  # the stage floor's fog bank (eye and lights above/outside)
+GROUND_FOG_SHAPE = (16, 12, 32)  # (nz, ny, nx)
+
+
+def ground_fog(time: float = 0.0, shape: tuple[int, int, int] = GROUND_FOG_SHAPE) -> np.ndarray:
+    """Ground fog on GROUND_FOG_BOX, values (nz, ny, nx): a dense layer at the floor (~16) thinning
+    upward (an e-folding height of ~0.65 m, and to 0 at the box's top, so the box has no visible
+    lid) with rolling swells; `time` (in loop periods: 1.0 comes back to
+    0.0) drifts the swells across the stage."""
+    nz, ny, nx = shape
+    z, y, x = np.meshgrid(*((np.arange(n) + 0.5) / n for n in shape), indexing="ij")
+    phase = 2.0 * np.pi * time
+    swell = (np.sin(2 * np.pi * (2.0 * x + 0.5 * z) - phase) + 0.6 * np.sin(2 * np.pi * (3.0 * x - 1.5 * z) - 2 * phase)
+             + 0.4 * np.cos(2 * np.pi * (1.0 * x + 2.0 * z) + phase))
+    height = 0.22 * (1.0 + 0.35 * swell / 2.0)  # the fog top, in box heights, rises and falls with the swells
+    d = 16.0 * np.exp(-y / height) * (0.8 + 0.2 * np.cos(2 * np.pi * 3 * z + phase)) * (1.0 - y) ** 2
+    return np.clip(d, 0.0, None)
+
+
+def with_ground_fog(scene, time: float = 0.0, *, shape: tuple[int, int, int] = GROUND_FOG_SHAPE):
+    """`scene` (the stage) with its medium's density replaced by `ground_fog(time)` (rho, kappa
+    and K kept: the fog is denser than the stage's haze near the floor and absent above the box)."""
+    grid = DensityGrid(ground_fog(time, shape), *GROUND_FOG_BOX)
+    medium = scene.medium
+    return eqx.tree_at(lambda s: s.medium, scene, Medium(medium.rho, medium.kappa, medium.K, grid))
