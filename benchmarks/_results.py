@@ -54,8 +54,10 @@ def cpu_description() -> str:
     return f"{model} ({names[widest]})" if widest else model
 
 
-def write_results(name: str, rows: list[dict], *, quick: bool = False) -> Path | None:
-    """Write `rows` (the script's headline rows, see the module docstring) to results/<name>.json."""
+def write_results(name: str, rows: list[dict], *, quick: bool = False, update: bool = False) -> Path | None:
+    """Write `rows` (the script's headline rows, see the module docstring) to results/<name>.json;
+    `update`: replace only the rows of the same targets in an existing file (a script's rerun of
+    some sections), each marked with the run that measured it."""
     for row in rows:
         missing = [k for k in _REQUIRED if not isinstance(row.get(k), str) or not row[k]]
         if missing:
@@ -76,6 +78,12 @@ def write_results(name: str, rows: list[dict], *, quick: bool = False) -> Path |
     }
     directory.mkdir(exist_ok=True)
     path = directory / f"{name}.json"
+    if update and path.exists():  # a rerun of some rows: they carry this run, the others keep theirs
+        previous = json.loads(path.read_text())
+        run = {k: record[k] for k in ("command", "date_utc", "load_average_1_5_15", "cpu")}
+        fresh = {row["target"]: {**row, "run": run} for row in rows}
+        kept = [fresh.pop(row["target"], row) for row in previous["rows"]]
+        record = {**previous, "rows": kept + list(fresh.values())}
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(record, indent=1, ensure_ascii=False) + "\n")
     tmp.replace(path)  # never a half-written file

@@ -124,9 +124,10 @@ def summary_table(old_rows: list[list[str]], results: list[dict]) -> list[str]:
     index = {(r[0], r[1]): i for i, r in enumerate(rows)}
     for rec in results:
         for res in rec["rows"]:
-            load = rec.get("load_average_1_5_15", [float("nan")])[0]
-            cpu = rec.get("cpu", "CPU not recorded")
-            measured = f"{res['measured']} [{rec['date_utc']} UTC, {cpu}, load {load:.1f}, `{rec['command']}`]"
+            run = {**rec, **res.get("run", {})}  # a row rerun alone (a script's --sections) carries its own run
+            load = run.get("load_average_1_5_15", [float("nan")])[0]
+            cpu = run.get("cpu", "CPU not recorded")
+            measured = f"{res['measured']} [{run['date_utc']} UTC, {cpu}, load {load:.1f}, `{run['command']}`]"
             cells = [res["issue"], res["target"], measured, res["status"], res.get("notes", "")]
             key = (_cell(res["issue"]), _cell(res["target"]))
             if key in index:

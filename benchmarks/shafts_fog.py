@@ -28,10 +28,11 @@ it; its uniform twin has the same lights and objects in uniform fog everywhere.
    scaled from there by e^2 (its noise falls as 1/sqrt(spp)).
 5. error: `choose_counts(scene, 0.02)` on uniform, stage and grid scenes (720 x 480 cameras): the
    count chosen, the error predicted, the error achieved against a converged ray march (at
-   180 x 120), the cheapest hand-picked count reaching 2 %, and the frame times of both (the
-   estimate's time added to the chosen frame's).
+   180 x 120), the hand-picked count reaching 2 % with the fastest frame, and the frame times of
+   both (the estimate's time added to the chosen frame's).
 
-Writes benchmarks/results/shafts_fog.json (the summary rows) and prints every table.
+Writes benchmarks/results/shafts_fog.json (the summary rows) and prints every table; with
+--sections, only those sections' rows are replaced there, each marked with its own run.
 """
 
 from __future__ import annotations
@@ -423,7 +424,6 @@ def error_report(args, base: Path) -> list[dict]:
         n = choice.options["samples"]
         achieved = errs[n] if n in errs else rel(
             jax.jit(lambda s: sum(render_equiangular(s, samples=n, return_parts=True)[1][1]))(small[name]), ref)
-        hand = min((k for k in HAND_PICKED if errs.get(k, 1.0) <= TARGET), default=None)
         any_n = min((k for k, e in errs.items() if e <= TARGET), default=None)
 
         def frame_s(k, name=name):
@@ -432,6 +432,10 @@ def error_report(args, base: Path) -> list[dict]:
                                                  repeats=repeats)[2]
             return frame_cache[(name, k)]
 
+        # the peer: the fastest frame of the hand-picked counts reaching 2 % (a count between multiples of
+        # 8 can be slower than the next multiple: the smallest count is not always the cheapest)
+        reaching = [k for k in HAND_PICKED if errs.get(k, 1.0) <= TARGET]
+        hand = min(reaching, key=frame_s, default=None)
         t_choice = frame_s(n)
         t_hand = frame_s(hand) if hand else float("nan")
         t_any = frame_s(any_n) if any_n else float("nan")
@@ -450,13 +454,13 @@ def error_report(args, base: Path) -> list[dict]:
     print(f"\n5. Sample counts from an error target of 2 % (default method; errors of the in-scattered light at "
           f"{rw} x {rh} against a 192-sample ray march; times at {w} x {h}; load {load_avg():.1f})")
     print(C.table(["scene", "chosen samples", "predicted (proxy)", "achieved",
-                   f"cheapest of {HAND_PICKED} reaching 2 %", f"cheapest of {counts[0]}..{counts[-1]} reaching 2 %",
+                   f"fastest of {HAND_PICKED} reaching 2 %", f"smallest of {counts[0]}..{counts[-1]} reaching 2 %",
                    "estimate s", "chosen frame s", "hand-picked frame s", "(estimate + chosen) / hand-picked",
-                   "... / any count"], rows))
+                   "... / smallest count"], rows))
     return [dict(issue="24 fog grids", target="--error 0.02: <= 2.5 % on every scene, <= 1.5x the cheapest hand-picked "
                                               "setting reaching 2 %",
-                 measured=f"worst achieved {100 * worst:.2f} %, slowest {slowest:.2f}x against the cheapest of "
-                          f"{HAND_PICKED} ({slowest_any:.2f}x against the cheapest count of all), estimate included, "
+                 measured=f"worst achieved {100 * worst:.2f} %, slowest {slowest:.2f}x against the fastest of "
+                          f"{HAND_PICKED} reaching 2 % ({slowest_any:.2f}x against the smallest count of all reaching 2 %), estimate included, "
                           f"over {len(rows)} scenes ({w} x {h} frames)",
                  status="met" if worst <= 0.025 and slowest <= 1.5 else "missed")]
 
@@ -483,10 +487,8 @@ def main(argv=None) -> int:
         rows += SECTIONS[name](args, base)
     from _results import write_results
 
-    if set(names) == set(SECTIONS):
-        write_results("shafts_fog", rows, quick=args.quick)
-    else:
-        print("(a subset of the sections: benchmarks/results/shafts_fog.json not written)")
+    # a subset of the sections replaces its own rows in results/shafts_fog.json (each row names its run)
+    write_results("shafts_fog", rows, quick=args.quick, update=set(names) != set(SECTIONS))
     for row in rows:
         print(f"| {row['issue']} | {row['target']} | {row['measured']} | {row['status']} |")
     return 0
