@@ -41,7 +41,8 @@ DEFAULT_CHUNK = 4096
 # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
 TILE = 32
 PARTIAL = ".partial"
-_FIELDS = ("rho_d", "rho_s", "normal", "sigma_x", "sigma_y", "residual", "cost", "converged", "num_steps", "n_valid")
+_FIELDS = ("rho_d", "rho_s", "normal", "sigma_x", "sigma_y", "residual", "cost", "converged", "num_steps", "n_valid",
+           "material")
 
 
 def _layout(chunk: int, n_devices: int) -> tuple[int, int]:
@@ -67,15 +68,16 @@ def _tile_fit(tile: int, model: str, solver: str, max_steps: int):
     second time, 5-10x slower on CPU; `jax.shard_map`/`pmap` meet lineax's structure checks.)
     """
 
-    def fn(ratio, weight, light_dirs, view_dir):
+    def fn(ratio, weight, light_dirs, view_dir, materials):
         out = jax.lax.map(lambda rw: fit_texels(rw[0], rw[1], light_dirs, view_dir, model=model, solver=solver,
-                                                max_steps=max_steps), (ratio, weight))
+                                                max_steps=max_steps, materials=materials), (ratio, weight))
         return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
     return jax.jit(fn)
 
 
-def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_steps) -> dict[str, np.ndarray]:
+def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_steps,
+               materials=None) -> dict[str, np.ndarray]:
     """Fit `n_devices * per_device` texels (already padded) over the local devices; flat numpy fields."""
     devices = jax.local_devices()
     fn = _tile_fit(tile, model, solver, max_steps)
@@ -87,7 +89,7 @@ def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_
         r = jax.device_put(ratio[share].reshape((-1, tile) + ratio.shape[1:]), place)
         w = jax.device_put(weight[share].reshape((-1, tile) + weight.shape[1:]), place)
         dirs, view = jax.device_put(np.asarray(light_dirs), place), jax.device_put(np.asarray(view_dir), place)
-        outs.append(fn(r, w, dirs, view))
+        outs.append(fn(r, w, dirs, view, jax.device_put(materials, place) if materials is not None else None))
     return {name: np.concatenate([np.asarray(getattr(o, name)) for o in outs]) for name in _FIELDS}
 
 
@@ -144,14 +146,16 @@ def chunk_plan(total: int, chunk: int) -> tuple[list[int], int, int]:
 
 
 def fit_chunk(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], start: int, count: int, padded: int,
-              light_dirs, view_dir, *, tile: int, model: str, solver: str, max_steps: int) -> dict[str, np.ndarray]:
+              light_dirs, view_dir, *, tile: int, model: str, solver: str, max_steps: int,
+              materials=None) -> dict[str, np.ndarray]:
     """Fit texels `start .. start + count - 1`: `read(start, count)` gives their (ratio `count L 3`,
     weight `count L`); padded to `padded` texels with the last one; flat numpy `TexelFit` fields."""
     ratio, weight = read(start, count)
     if count != padded:
         idx = np.minimum(np.arange(padded), count - 1)  # pad with the last texel
         ratio, weight = ratio[idx], weight[idx]
-    out = _chunk_fit(ratio, weight, light_dirs, view_dir, tile=tile, model=model, solver=solver, max_steps=max_steps)
+    out = _chunk_fit(ratio, weight, light_dirs, view_dir, tile=tile, model=model, solver=solver, max_steps=max_steps,
+                     materials=materials)
     return {k: v[:count] for k, v in out.items()}
 
 
@@ -183,7 +187,7 @@ def assemble_maps(results: list[dict[str, np.ndarray]], size: tuple[int, int]) -
 def fit_chunks(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], size: tuple[int, int], light_dirs,
                view_dir, *, solver: str, chunk: int, max_steps: int, model: str, partial: Path | None,
                progress: bool | None, on_chunk: Callable[[int], object] | None = None,
-               prefetch: bool = False) -> dict[str, np.ndarray]:
+               prefetch: bool = False, materials=None) -> dict[str, np.ndarray]:
     """Fit every chunk of `read`'s texels in this process, checkpointing each into `partial`
     (chunks already there are loaded). `prefetch`: read the next chunk (a thread) while this one
     is fitted. `on_chunk(i)` is called after chunk i is fitted and saved."""
@@ -210,7 +214,7 @@ def fit_chunks(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], size: 
             if reader is not None and k + 1 < len(todo):
                 future = reader.submit(load, todo[k + 1])
             result = fit_chunk(lambda s, c, data=data: data, starts[i], counts[i], padded, light_dirs, view_dir,
-                               tile=tile, model=model, solver=solver, max_steps=max_steps)
+                               tile=tile, model=model, solver=solver, max_steps=max_steps, materials=materials)
             if partial is not None:
                 _save_chunk(chunk_path(partial, i), result)
             results[i] = result
@@ -226,7 +230,8 @@ def fit_chunks(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], size: 
 
 def fit_maps(obs, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK, max_steps: int = DEFAULT_MAX_STEPS,
              model: str = "reciprocal", partial_dir: str | os.PathLike | None = None,
-             progress: bool | None = None, on_chunk: Callable[[int], object] | None = None) -> dict[str, np.ndarray]:
+             progress: bool | None = None, on_chunk: Callable[[int], object] | None = None,
+             materials=None) -> dict[str, np.ndarray]:
     """Fit every texel of `Observations`; returns `H W ...` numpy maps of the `TexelFit` fields.
 
     `partial_dir`: checkpoint finished chunks there and reuse the ones already present.
@@ -245,7 +250,7 @@ def fit_maps(obs, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK, m
         _prepare_partial(partial, _fingerprint(obs, settings))
     return fit_chunks(lambda s, c: (ratio[s:s + c], weight[s:s + c]), (h, w), obs.light_dirs, obs.view_dir,
                       solver=solver, chunk=chunk, max_steps=max_steps, model=model, partial=partial,
-                      progress=progress, on_chunk=on_chunk)
+                      progress=progress, on_chunk=on_chunk, materials=materials)
 
 
 def level0_channels(maps: dict[str, np.ndarray], obs) -> dict[str, np.ndarray]:

@@ -51,6 +51,7 @@ from ._varpro import (
     S_MAX,
     S_MIN,
     Lights,
+    Prior,
     columns,
     columns_from_frame,
     gauss_newton,
@@ -58,10 +59,11 @@ from ._varpro import (
     lights_of,
     project_rho_columns,
     projected_cost_offset,
+    projected_cost_offset_and_rho_d,
     theta_to_geometry,
 )
 
-__all__ = ["TexelFit", "SOLVERS", "fit_texels", "fit_texel", "initial_theta", "theta_to_geometry",
+__all__ = ["TexelFit", "MaterialTable", "SOLVERS", "fit_texels", "fit_texel", "initial_theta", "theta_to_geometry",
            "geometry_to_theta", "basis", "project_rho", "texel_cost", "texel_residuals",
            "default_tolerances", "DEFAULT_SOLVER", "S_MIN", "S_MAX", "SIGMA_STARTS"]
 
@@ -85,10 +87,51 @@ class TexelFit(eqx.Module):
     converged: Bool[Array, "*T"]   # the solver met its tolerance or fitted exactly (and the texel had observations)
     num_steps: Int[Array, "*T"]
     n_valid: Int[Array, "*T"]
+    material: Int[Array, "*T"]     # the row of the `MaterialTable` whose prior the texel took (-1: none)
 
     def texel(self) -> BTFTexel:
         """The fit as a one-lobe `BTFTexel` (for `jaxrender.brdf.reflectance` / rendering)."""
         return BTFTexel.single(self.rho_d, self.rho_s, self.normal, self.sigma_x, self.sigma_y)
+
+
+# The priors a `MaterialTable` gives a texel (one setting for every capture): log-slopes within
+# TAU_LOG_SLOPE of the material's (a factor e^0.35 = 1.4 at one standard deviation), rho_s within
+# TAU_RHO_REL of the material's plus TAU_RHO_FLOOR of the texel's RMS observation (so a material
+# without a lobe still lets a texel's lobe through where its data pin it).
+TAU_LOG_SLOPE = 0.35
+TAU_RHO_REL = 0.35
+TAU_RHO_FLOOR = 0.05
+COLOUR_EPS = 1e-3   # log(rho_d + eps): the colour a texel's material is recognised by
+
+
+class MaterialTable(eqx.Module):
+    """Materials shared by the texels of a capture (estimated by `fitting.materials`): per row
+    the centre of a Gaussian prior on a texel's lobe, and the capture's noise level.
+
+    A texel fitted with a table takes the prior of the row that explains its start best (the
+    MAP class: projected objective plus the row's log share); the prior's weights are the noise
+    variance (`noise` times the texel's mean squared observation) over the prior's variance.
+    Rows with `log_share` = -inf are unused (tables are padded to one shape)."""
+
+    rho_s: Float[Array, "M 3"]
+    s: Float[Array, "M 2"]         # the solver's log-slopes (`geometry_to_theta`) of the material's lobe
+    log_share: Float[Array, " M"]  # log of the fraction of the sample's texels in the material
+    colour: Float[Array, "M 3"]    # mean log(rho_d + COLOUR_EPS) of the material's texels
+    colour_spread: Float[Array, " M"]   # their standard deviation (per channel, pooled)
+    noise: Float[Array, ""]        # residual variance of the sample's fits / their mean squared observation
+
+    @property
+    def size(self) -> int:
+        return int(self.rho_s.shape[0])
+
+
+def _material_priors(table: MaterialTable, mean_sq: Float[Array, ""]) -> Prior:
+    """The `M` priors of a table for a texel of mean squared observation `mean_sq` (stacked)."""
+    var = table.noise * mean_sq
+    tau_rho = TAU_RHO_REL * jnp.mean(table.rho_s, axis=-1) + TAU_RHO_FLOOR * jnp.sqrt(mean_sq)
+    rho_weight = var / jnp.maximum(tau_rho * tau_rho, jnp.finfo(mean_sq.dtype).tiny)
+    s_weight = jnp.broadcast_to(var / TAU_LOG_SLOPE**2, rho_weight.shape)
+    return Prior(table.rho_s, rho_weight, table.s, s_weight)
 
 
 def default_tolerances(dtype) -> tuple[float, float]:
@@ -192,8 +235,8 @@ def _compress(theta, args, model):
     their `3L x 4` Jacobian are replaced by 5 numbers and a 4 x 4 triangle.) M is lifted by 1e-7 of
     its mean diagonal to stay definite where a parameter has no effect (a black texel).
     """
-    ratio_cl, w, lights = args
-    gn = gauss_newton(theta, ratio_cl, w, lights, model)
+    ratio_cl, w, lights, prior = args
+    gn = gauss_newton(theta, ratio_cl, w, lights, model, prior)
     m = gn.matrix
     dt = m.dtype
     lift = 1e-7 * jnp.trace(m) / 4 + jnp.finfo(dt).tiny ** 0.5
@@ -271,18 +314,57 @@ def initial_theta(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_
                           lights_of(jnp.asarray(light_dirs), jnp.asarray(view_dir)), model)
 
 
-def _initial_theta(ratio_cl, w, lights, model):
-    dt = ratio_cl.dtype
+def _start_normals(ratio_cl, w, lights):
+    """The photometric-stereo normal and the half vector of the brightest observation."""
     n_ps = _photometric_stereo(ratio_cl, w, lights)
     y = jnp.where(w > 0, ratio_cl[0] + ratio_cl[1] + ratio_cl[2], -jnp.inf)
     brightest = jnp.argmax(y)
     n_peak = normalize(jnp.stack([c[brightest] for c in lights.h]))  # the half vector of the brightest light
-    n_peak = jnp.where(n_peak[2] > 0.05, n_peak, n_ps)
+    return n_ps, jnp.where(n_peak[2] > 0.05, n_peak, n_ps)
+
+
+def _material_start(ratio_cl, w, lights, model, table: MaterialTable):
+    """(theta0, prior, row) of a texel fitted with a material table (`MaterialTable`).
+
+    Each row's lobe at the better of the two start normals is scored by its projected objective
+    under the row's prior plus the noise variance times -log(share) (a MAP class); the best row's
+    prior is the texel's. The start is the best, under that prior, of the rows' lobes and the
+    generic 3 x 3 slope grid (`_initial_theta`)."""
+    dt = ratio_cl.dtype
+    mean_sq = jnp.sum(w * (ratio_cl[0] ** 2 + ratio_cl[1] ** 2 + ratio_cl[2] ** 2)) / (3 * jnp.maximum(jnp.sum(w), 1e-30))
+    priors = _material_priors(table, mean_sq)
+    normals = jnp.stack(_start_normals(ratio_cl, w, lights))
+
+    def row_score(prior, colour, spread):
+        def at(n):
+            th = jnp.concatenate([geometry_to_theta(n, 1.0, 1.0)[:2], prior.s])
+            score, rho_d = projected_cost_offset_and_rho_d(th, ratio_cl, w, lights, model, prior)
+            d = (jnp.log(rho_d + COLOUR_EPS) - colour) / spread
+            # the Gaussian colour likelihood of the material (negative log, up to a constant)
+            return th, score, 0.5 * jnp.sum(d * d) + 3 * jnp.log(spread)
+        ths, sc, nll = jax.vmap(at)(normals)
+        k = jnp.argmin(sc)
+        return ths[k], sc[k], nll[k]
+
+    thetas, scores, colour_nll = jax.vmap(row_score)(priors, table.colour, table.colour_spread)
+    var = table.noise * mean_sq
+    total = jnp.where(jnp.isfinite(table.log_share), scores + 2 * var * (colour_nll - table.log_share), jnp.inf)
+    row = jnp.argmin(total)
+    prior = jax.tree_util.tree_map(lambda x: x[row], priors)
+    generic = _initial_theta(ratio_cl, w, lights, model, prior=prior, normals=normals)
+    cand = jnp.concatenate([thetas, generic[None]])
+    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model, prior))(cand)
+    score = jnp.where(jnp.concatenate([jnp.isfinite(table.log_share), jnp.ones(1, bool)]), score, jnp.inf)
+    return cand[jnp.argmin(score)].astype(dt), prior, row.astype(jnp.int32)
+
+
+def _initial_theta(ratio_cl, w, lights, model, prior: Prior | None = None, normals=None):
+    dt = ratio_cl.dtype
+    normals = jnp.stack(_start_normals(ratio_cl, w, lights)) if normals is None else normals
     sig = jnp.asarray(SIGMA_STARTS, dt)
-    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model))
+    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model, prior))
     # the better normal at the middle slopes, then the 3 x 3 slopes with that normal
     mid = sig[len(SIGMA_STARTS) // 2]
-    normals = jnp.stack([n_ps, n_peak])
     normal = normals[jnp.argmin(score(jax.vmap(lambda n: geometry_to_theta(n, mid, mid))(normals)))]
     sx, sy = jnp.meshgrid(sig, sig, indexing="ij")
     cand = jax.vmap(lambda a, b: geometry_to_theta(normal, a, b))(sx.reshape(-1), sy.reshape(-1))
@@ -383,10 +465,10 @@ def _solve_native(fn, theta0, args, max_steps, rtol, atol):
     precision (a stationary point).
     """
     dt = theta0.dtype
-    ratio_cl, w, lights = args
+    ratio_cl, w, lights, prior = args
 
     def linearized(theta):
-        gn = gauss_newton(theta, ratio_cl, w, lights, fn.model)
+        gn = gauss_newton(theta, ratio_cl, w, lights, fn.model, prior)
         return gn.objective, gn.matrix, gn.grad
 
     c0, a0, g0 = linearized(theta0)
@@ -426,8 +508,9 @@ def _solve_native(fn, theta0, args, max_steps, rtol, atol):
 def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs: Float[Array, "L 3"],
               view_dir: Float[Array, "3"], *, model: str = "reciprocal", solver: str = DEFAULT_SOLVER,
               max_steps: int = DEFAULT_MAX_STEPS, rtol: float | None = None, atol: float | None = None,
-              theta0: Float[Array, "4"] | None = None) -> TexelFit:
-    """Fit one texel (not jitted; `fit_texels` is the jitted, vmapped version)."""
+              theta0: Float[Array, "4"] | None = None, materials: MaterialTable | None = None) -> TexelFit:
+    """Fit one texel (not jitted; `fit_texels` is the jitted, vmapped version). `materials`: fit
+    under the prior of the texel's material (`MaterialTable`); None: no prior."""
     if model not in MODELS:
         raise ValueError(f"unknown model {model!r}: use one of {MODELS}")
     if solver not in SOLVERS:
@@ -445,16 +528,20 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
     w = _normalized_weights(weight)
     n_valid = jnp.sum(w > 0)
     lights = lights_of(light_dirs, view_dir)
-    if theta0 is None:
+    prior, row = None, jnp.asarray(-1, jnp.int32)
+    if materials is not None:
+        start, prior, row = _material_start(ratio_cl, w, lights, model, materials)
+        theta0 = start if theta0 is None else theta0
+    elif theta0 is None:
         theta0 = _initial_theta(ratio_cl, w, lights, model)
-    args = (ratio_cl, w, lights)
+    args = (ratio_cl, w, lights, prior)
     run = {"optimistix": _solve_optimistix, "jaxopt": _solve_jaxopt, "native": _solve_native}[solver]
     theta, ok, steps = run(_VarProResidual(model), theta0, args, max_steps, rtol, atol)
     bad = ~jnp.all(jnp.isfinite(theta))
     theta = jnp.where(bad, theta0, theta)
     normal, sx, sy = theta_to_geometry(theta)
     a, b = columns(theta, lights, model)
-    rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w)
+    rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w, prior=prior)
     diff = [ratio_cl[c] - rho_d[c] * a - rho_s[c] * b for c in range(3)]
     sq_l = diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]
     cost = 0.5 * jnp.sum(w * sq_l)
@@ -467,14 +554,14 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
     converged = ((ok & ~bad) | exact) & (n_valid > 0)
     return TexelFit(rho_d=rho_d, rho_s=rho_s, normal=normal, sigma_x=sx, sigma_y=sy, residual=residual,
                     cost=cost, converged=converged, num_steps=jnp.asarray(steps, jnp.int32),
-                    n_valid=n_valid.astype(jnp.int32))
+                    n_valid=n_valid.astype(jnp.int32), material=row)
 
 
 @functools.partial(jax.jit, static_argnames=("model", "solver", "max_steps", "rtol", "atol"))
 def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_dirs: Float[Array, "L 3"],
                view_dir: Float[Array, "3"], *, model: str = "reciprocal", solver: str = DEFAULT_SOLVER,
                max_steps: int = DEFAULT_MAX_STEPS, rtol: float | None = None,
-               atol: float | None = None) -> TexelFit:
+               atol: float | None = None, materials: MaterialTable | None = None) -> TexelFit:
     """Fit a batch of texels (jitted, vmapped over the leading axis of `ratio` and `weight`).
 
     A texel's fit is bit-identical in any batch, at any place: the lights are padded with
@@ -495,5 +582,5 @@ def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_
         ratio = jnp.concatenate([ratio, jnp.repeat(ratio[-1:], pad_t, axis=0)])
         weight = jnp.concatenate([weight, jnp.repeat(weight[-1:], pad_t, axis=0)])
     one = functools.partial(fit_texel, model=model, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol)
-    out = jax.vmap(one, in_axes=(0, 0, None, None))(ratio, weight, light_dirs, view_dir)
+    out = jax.vmap(lambda r, w: one(r, w, light_dirs, view_dir, materials=materials))(ratio, weight)
     return jax.tree_util.tree_map(lambda x: x[:n_texels], out) if pad_t else out
