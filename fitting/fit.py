@@ -41,6 +41,7 @@ DEFAULT_CHUNK = 4096
 # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
 TILE = 32
 PARTIAL = ".partial"
+ROBUST_ROUNDS = 1   # reweighted solves after the first (fitting.lm._robust_weights) in a fit with materials
 _FIELDS = ("rho_d", "rho_s", "normal", "sigma_x", "sigma_y", "residual", "cost", "converged", "num_steps", "n_valid",
            "material")
 
@@ -70,7 +71,9 @@ def _tile_fit(tile: int, model: str, solver: str, max_steps: int):
 
     def fn(ratio, weight, light_dirs, view_dir, materials):
         out = jax.lax.map(lambda rw: fit_texels(rw[0], rw[1], light_dirs, view_dir, model=model, solver=solver,
-                                                max_steps=max_steps, materials=materials), (ratio, weight))
+                                                max_steps=max_steps, materials=materials,
+                                                robust_rounds=ROBUST_ROUNDS if materials is not None else 0),
+                          (ratio, weight))
         return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
     return jax.jit(fn)

@@ -101,6 +101,7 @@ class TexelFit(eqx.Module):
 TAU_LOG_SLOPE = 0.35
 TAU_RHO_REL = 0.35
 TAU_RHO_FLOOR = 0.05
+ROBUST_SCALE = 2.5  # Cauchy weights: an observation ROBUST_SCALE times the median residual off weighs 1/2
 COLOUR_EPS = 1e-3   # log(rho_d + eps): the colour a texel's material is recognised by
 
 
@@ -505,12 +506,31 @@ def _solve_native(fn, theta0, args, max_steps, rtol, atol):
     return st["theta"], st["done"], st["step"]
 
 
+def _robust_weights(theta, ratio_cl, w, lights, model, prior):
+    """Weights of an iteratively reweighted fit (Cauchy): w_l / (1 + (e_l / (ROBUST_SCALE m))^2),
+    e_l the RMS residual of light l over the channels at the fit `theta`, m the median of e over
+    the valid lights; normalized to mean 1 over them. Shadows the model cannot cast, highlights
+    it cannot shape and interreflections weigh little; a capture the model explains keeps
+    nearly uniform weights."""
+    a, b = columns(theta, lights, model)
+    rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w, prior=prior)
+    e2 = sum((ratio_cl[c] - rho_d[c] * a - rho_s[c] * b) ** 2 for c in range(3))
+    valid = w > 0
+    n = jnp.sum(valid)
+    order = jnp.sort(jnp.where(valid, e2, jnp.inf))
+    med = order[jnp.maximum((n - 1) // 2, 0)]
+    med = jnp.where(jnp.isfinite(med) & (med > 0), med, 1.0)
+    return _normalized_weights(w / (1.0 + e2 / (ROBUST_SCALE**2 * med)))
+
+
 def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs: Float[Array, "L 3"],
               view_dir: Float[Array, "3"], *, model: str = "reciprocal", solver: str = DEFAULT_SOLVER,
               max_steps: int = DEFAULT_MAX_STEPS, rtol: float | None = None, atol: float | None = None,
-              theta0: Float[Array, "4"] | None = None, materials: MaterialTable | None = None) -> TexelFit:
+              theta0: Float[Array, "4"] | None = None, materials: MaterialTable | None = None,
+              robust_rounds: int = 0) -> TexelFit:
     """Fit one texel (not jitted; `fit_texels` is the jitted, vmapped version). `materials`: fit
-    under the prior of the texel's material (`MaterialTable`); None: no prior."""
+    under the prior of the texel's material (`MaterialTable`); None: no prior. `robust_rounds`:
+    reweight the observations by their residuals and solve again, this many times (`_robust_weights`)."""
     if model not in MODELS:
         raise ValueError(f"unknown model {model!r}: use one of {MODELS}")
     if solver not in SOLVERS:
@@ -539,6 +559,12 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
     theta, ok, steps = run(_VarProResidual(model), theta0, args, max_steps, rtol, atol)
     bad = ~jnp.all(jnp.isfinite(theta))
     theta = jnp.where(bad, theta0, theta)
+    for _ in range(robust_rounds):
+        w = _robust_weights(theta, ratio_cl, w, lights, model, prior)
+        theta_r, ok, steps_r = run(_VarProResidual(model), theta, (ratio_cl, w, lights, prior), max_steps, rtol, atol)
+        bad = ~jnp.all(jnp.isfinite(theta_r))
+        theta = jnp.where(bad, theta, theta_r)
+        steps = steps + steps_r
     normal, sx, sy = theta_to_geometry(theta)
     a, b = columns(theta, lights, model)
     rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w, prior=prior)
@@ -557,11 +583,12 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
                     n_valid=n_valid.astype(jnp.int32), material=row)
 
 
-@functools.partial(jax.jit, static_argnames=("model", "solver", "max_steps", "rtol", "atol"))
+@functools.partial(jax.jit, static_argnames=("model", "solver", "max_steps", "rtol", "atol", "robust_rounds"))
 def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_dirs: Float[Array, "L 3"],
                view_dir: Float[Array, "3"], *, model: str = "reciprocal", solver: str = DEFAULT_SOLVER,
                max_steps: int = DEFAULT_MAX_STEPS, rtol: float | None = None,
-               atol: float | None = None, materials: MaterialTable | None = None) -> TexelFit:
+               atol: float | None = None, materials: MaterialTable | None = None,
+               robust_rounds: int = 0) -> TexelFit:
     """Fit a batch of texels (jitted, vmapped over the leading axis of `ratio` and `weight`).
 
     A texel's fit is bit-identical in any batch, at any place: the lights are padded with
@@ -581,6 +608,7 @@ def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_
     if pad_t:
         ratio = jnp.concatenate([ratio, jnp.repeat(ratio[-1:], pad_t, axis=0)])
         weight = jnp.concatenate([weight, jnp.repeat(weight[-1:], pad_t, axis=0)])
-    one = functools.partial(fit_texel, model=model, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol)
+    one = functools.partial(fit_texel, model=model, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol,
+                            robust_rounds=robust_rounds)
     out = jax.vmap(lambda r, w: one(r, w, light_dirs, view_dir, materials=materials))(ratio, weight)
     return jax.tree_util.tree_map(lambda x: x[:n_texels], out) if pad_t else out
