@@ -217,6 +217,12 @@ def nnls2(saa, sab, sbb, har, hbr, lam, lam_s=0.0):
     return rho_d, rho_s
 
 
+def _centre(w, *rows):
+    """Rows minus their w-weighted means: the constant column (an offset per channel) projected out."""
+    total = jnp.maximum(jnp.sum(w), jnp.finfo(w.dtype).tiny)
+    return [x - jnp.sum(w * x, axis=-1, keepdims=True) / total for x in rows]
+
+
 def _sums(a, b, ratio_cl, w):
     wa, wb = w * a, w * b
     har = jnp.stack([jnp.sum(ratio_cl[c] * wa) for c in range(3)])   # row sums: batched matvecs are slow on CPU
@@ -235,17 +241,20 @@ def project_rho_columns(a: Float[Array, " L"], b: Float[Array, " L"], ratio_cl: 
 
 
 def projected_cost_offset(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"],
-                          lights: Lights, model: str, prior: Prior | None = None) -> Float[Array, ""]:
-    return projected_cost_offset_and_rho_d(theta, ratio_cl, w, lights, model, prior)[0]
+                          lights: Lights, model: str, prior: Prior | None = None, *,
+                          offset: bool = False) -> Float[Array, ""]:
+    return projected_cost_offset_and_rho_d(theta, ratio_cl, w, lights, model, prior, offset=offset)[0]
 
 
 def projected_cost_offset_and_rho_d(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"],
-                                    lights: Lights, model: str,
-                                    prior: Prior | None = None) -> tuple[Float[Array, ""], Float[Array, "3"]]:
+                                    lights: Lights, model: str, prior: Prior | None = None, *,
+                                    offset: bool = False) -> tuple[Float[Array, ""], Float[Array, "3"]]:
     """2 * projected objective - sum w R^2 = sum_c (rho_c^T (G + lam) rho_c - 2 rho_c^T h_c), from the sums of
     one pass (no residuals): enough to rank starting points (it cancels where the fit is close,
     so it is not the cost itself). With a `prior`, its terms are included (twice, as the rest)."""
     a, b = columns(theta, lights, model)
+    if offset:
+        a, b, ratio_cl = _centre(w, a, b, ratio_cl)
     _, _, saa, sab, sbb, har, hbr = _sums(a, b, ratio_cl, w)
     lam = ridge_of(w)
     if prior is None:
@@ -286,9 +295,11 @@ class GaussNewton(NamedTuple):
 
 
 def gauss_newton(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"], lights: Lights,
-                 model: str, prior: Prior | None = None) -> GaussNewton:
+                 model: str, prior: Prior | None = None, *, offset: bool = False) -> GaussNewton:
     """Cost, exact gradient and Kaufman Gauss-Newton matrix of the projected cost (module docstring)."""
     a, b, da, db = columns_and_derivatives(theta, lights, model)
+    if offset:
+        a, b, da, db, ratio_cl = _centre(w, a, b, da, db, ratio_cl)
     wa, wb, saa, sab, sbb, har, hbr = _sums(a, b, ratio_cl, w)   # G and h of the projection
     lam = ridge_of(w)
     lam_s, hbr_p = _prior_terms(prior, hbr, lam)

@@ -41,7 +41,7 @@ DEFAULT_CHUNK = 4096
 # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
 TILE = 32
 PARTIAL = ".partial"
-ROBUST_ROUNDS = 1   # reweighted solves after the first (fitting.lm._robust_weights) in a fit with materials
+ROBUST_ROUNDS = 2   # reweighted solves (the first weighted at its start) (fitting.lm._robust_weights) in a fit with materials
 _FIELDS = ("rho_d", "rho_s", "normal", "sigma_x", "sigma_y", "residual", "cost", "converged", "num_steps", "n_valid",
            "material")
 

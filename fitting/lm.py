@@ -48,6 +48,7 @@ from jaxrender.maths import normalize
 
 from ._varpro import (
     RIDGE,
+    _centre,
     S_MAX,
     S_MIN,
     Lights,
@@ -59,6 +60,7 @@ from ._varpro import (
     lights_of,
     project_rho_columns,
     projected_cost_offset,
+    projected_objective,
     projected_cost_offset_and_rho_d,
     theta_to_geometry,
 )
@@ -101,6 +103,10 @@ class TexelFit(eqx.Module):
 TAU_LOG_SLOPE = 0.35
 TAU_RHO_REL = 0.35
 TAU_RHO_FLOOR = 0.05
+DIM_FRACTION = 0.08
+APPEARANCE = "all"
+OFFSET = True
+APPEARANCE_STEPS = 6
 ROBUST_SCALE = 2.5  # Cauchy weights: an observation ROBUST_SCALE times the median residual off weighs 1/2
 COLOUR_EPS = 1e-3   # log(rho_d + eps): the colour a texel's material is recognised by
 
@@ -226,7 +232,7 @@ def _chol_solve(a, b):
     return _forward_sub(low.T[::-1, ::-1], _forward_sub(low, b)[::-1])[::-1]
 
 
-def _compress(theta, args, model):
+def _compress(theta, args, model, offset=False):
     """(r, J): a 5-residual problem with the same value and Gauss-Newton model as the projected fit.
 
     With objective c, gradient g and Gauss-Newton matrix M of the projected fit (`gauss_newton`, one
@@ -237,7 +243,7 @@ def _compress(theta, args, model):
     its mean diagonal to stay definite where a parameter has no effect (a black texel).
     """
     ratio_cl, w, lights, prior = args
-    gn = gauss_newton(theta, ratio_cl, w, lights, model, prior)
+    gn = gauss_newton(theta, ratio_cl, w, lights, model, prior, offset=offset)
     m = gn.matrix
     dt = m.dtype
     lift = 1e-7 * jnp.trace(m) / 4 + jnp.finfo(dt).tiny ** 0.5
@@ -258,18 +264,18 @@ def _compress(theta, args, model):
     return reflect @ r, reflect @ jac
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
-def _residual(theta, args, model):
-    return _compress(theta, args, model)[0]
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3))
+def _residual(theta, args, model, offset):
+    return _compress(theta, args, model, offset)[0]
 
 
 @_residual.defjvp
-def _residual_jvp(model, primals, tangents):
+def _residual_jvp(model, offset, primals, tangents):
     """The tangent J d of the compressed residual (`_compress`); the observations (`args`) are
     data, not parameters: their tangents are ignored."""
     theta, args = primals
     d_theta, _ = tangents
-    r, jac = _compress(theta, args, model)
+    r, jac = _compress(theta, args, model, offset)
     return r, jac @ d_theta
 
 
@@ -277,9 +283,10 @@ class _VarProResidual(eqx.Module):
     """theta -> the compressed residual of the projected fit (`_compress`): the solvers' residual."""
 
     model: str = eqx.field(static=True)
+    offset: bool = eqx.field(static=True, default=False)   # an offset per channel projected out (`_centre`)
 
     def __call__(self, theta, args):
-        return _residual(theta, args, self.model)
+        return _residual(theta, args, self.model, self.offset)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -324,7 +331,7 @@ def _start_normals(ratio_cl, w, lights):
     return n_ps, jnp.where(n_peak[2] > 0.05, n_peak, n_ps)
 
 
-def _material_start(ratio_cl, w, lights, model, table: MaterialTable):
+def _material_start(ratio_cl, w, lights, model, table: MaterialTable, offset: bool = False):
     """(theta0, prior, row) of a texel fitted with a material table (`MaterialTable`).
 
     Each row's lobe at the better of the two start normals is scored by its projected objective
@@ -339,7 +346,7 @@ def _material_start(ratio_cl, w, lights, model, table: MaterialTable):
     def row_score(prior, colour, spread):
         def at(n):
             th = jnp.concatenate([geometry_to_theta(n, 1.0, 1.0)[:2], prior.s])
-            score, rho_d = projected_cost_offset_and_rho_d(th, ratio_cl, w, lights, model, prior)
+            score, rho_d = projected_cost_offset_and_rho_d(th, ratio_cl, w, lights, model, prior, offset=offset)
             d = (jnp.log(rho_d + COLOUR_EPS) - colour) / spread
             # the Gaussian colour likelihood of the material (negative log, up to a constant)
             return th, score, 0.5 * jnp.sum(d * d) + 3 * jnp.log(spread)
@@ -352,18 +359,18 @@ def _material_start(ratio_cl, w, lights, model, table: MaterialTable):
     total = jnp.where(jnp.isfinite(table.log_share), scores + 2 * var * (colour_nll - table.log_share), jnp.inf)
     row = jnp.argmin(total)
     prior = jax.tree_util.tree_map(lambda x: x[row], priors)
-    generic = _initial_theta(ratio_cl, w, lights, model, prior=prior, normals=normals)
+    generic = _initial_theta(ratio_cl, w, lights, model, prior=prior, normals=normals, offset=offset)
     cand = jnp.concatenate([thetas, generic[None]])
-    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model, prior))(cand)
+    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model, prior, offset=offset))(cand)
     score = jnp.where(jnp.concatenate([jnp.isfinite(table.log_share), jnp.ones(1, bool)]), score, jnp.inf)
     return cand[jnp.argmin(score)].astype(dt), prior, row.astype(jnp.int32)
 
 
-def _initial_theta(ratio_cl, w, lights, model, prior: Prior | None = None, normals=None):
+def _initial_theta(ratio_cl, w, lights, model, prior: Prior | None = None, normals=None, offset: bool = False):
     dt = ratio_cl.dtype
     normals = jnp.stack(_start_normals(ratio_cl, w, lights)) if normals is None else normals
     sig = jnp.asarray(SIGMA_STARTS, dt)
-    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model, prior))
+    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model, prior, offset=offset))
     # the better normal at the middle slopes, then the 3 x 3 slopes with that normal
     mid = sig[len(SIGMA_STARTS) // 2]
     normal = normals[jnp.argmin(score(jax.vmap(lambda n: geometry_to_theta(n, mid, mid))(normals)))]
@@ -469,7 +476,7 @@ def _solve_native(fn, theta0, args, max_steps, rtol, atol):
     ratio_cl, w, lights, prior = args
 
     def linearized(theta):
-        gn = gauss_newton(theta, ratio_cl, w, lights, fn.model, prior)
+        gn = gauss_newton(theta, ratio_cl, w, lights, fn.model, prior, offset=fn.offset)
         return gn.objective, gn.matrix, gn.grad
 
     c0, a0, g0 = linearized(theta0)
@@ -506,13 +513,15 @@ def _solve_native(fn, theta0, args, max_steps, rtol, atol):
     return st["theta"], st["done"], st["step"]
 
 
-def _robust_weights(theta, ratio_cl, w, lights, model, prior):
+def _robust_weights(theta, ratio_cl, w, lights, model, prior, offset: bool = False):
     """Weights of an iteratively reweighted fit (Cauchy): w_l / (1 + (e_l / (ROBUST_SCALE m))^2),
     e_l the RMS residual of light l over the channels at the fit `theta`, m the median of e over
     the valid lights; normalized to mean 1 over them. Shadows the model cannot cast, highlights
     it cannot shape and interreflections weigh little; a capture the model explains keeps
     nearly uniform weights."""
     a, b = columns(theta, lights, model)
+    if offset:
+        a, b, ratio_cl = _centre(w, a, b, ratio_cl)
     rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w, prior=prior)
     e2 = sum((ratio_cl[c] - rho_d[c] * a - rho_s[c] * b) ** 2 for c in range(3))
     valid = w > 0
@@ -521,6 +530,38 @@ def _robust_weights(theta, ratio_cl, w, lights, model, prior):
     med = order[jnp.maximum((n - 1) // 2, 0)]
     med = jnp.where(jnp.isfinite(med) & (med > 0), med, 1.0)
     return _normalized_weights(w / (1.0 + e2 / (ROBUST_SCALE**2 * med)))
+
+
+def _refit_slopes(theta, ratio_cl, w, lights, model, prior, steps: int):
+    """`steps` damped Gauss-Newton steps on the slopes alone (the normal held), for the weights `w`
+    (the appearance stage: every valid observation, no offset)."""
+    dt = theta.dtype
+
+    def body(_, st):
+        th, lam = st
+        gn = gauss_newton(th, ratio_cl, w, lights, model, prior)
+        m = gn.matrix[2:, 2:]
+        m = m + (lam * jnp.diagonal(m) + jnp.finfo(dt).tiny ** 0.5) * jnp.eye(2, dtype=dt)
+        d = _chol_solve(m, -gn.grad[2:])
+        trial = th.at[2:].add(d)
+        better = projected_objective(trial, ratio_cl, w, lights, model, prior)[0] < gn.objective
+        return jnp.where(better, trial, th), jnp.where(better, lam * 0.3, lam * 10.0)
+
+    return jax.lax.fori_loop(0, steps, body, (theta, jnp.asarray(1e-3, dt)))[0]
+
+
+def _bright_enough(ratio_cl, w):
+    """1 where an observation's luminance reaches DIM_FRACTION of the texel's upper quartile, else 0:
+    the dimmest observations (cast and attached shadows, the terminator, ambient light) carry
+    little of the geometry and much of what the model cannot explain."""
+    y = ratio_cl[0] + ratio_cl[1] + ratio_cl[2]
+    valid = w > 0
+    n = jnp.sum(valid)
+    order = jnp.sort(jnp.where(valid, y, jnp.inf))
+    q75 = order[jnp.clip((3 * n) // 4, 0, y.shape[0] - 1)]
+    q75 = jnp.where(jnp.isfinite(q75), q75, 0.0)
+    keep = y >= DIM_FRACTION * q75
+    return jnp.where(jnp.sum(valid & keep) >= 8, keep, True).astype(w.dtype)
 
 
 def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs: Float[Array, "L 3"],
@@ -545,28 +586,37 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
     finite = jnp.all(jnp.isfinite(ratio), axis=-1) & jnp.isfinite(weight)
     weight = jnp.where(finite, jnp.maximum(weight, 0.0), 0.0)
     ratio_cl = jnp.where(finite[None, :], ratio.T, 0.0)
-    w = _normalized_weights(weight)
+    w = w0 = w_all = _normalized_weights(weight)
     n_valid = jnp.sum(w > 0)
     lights = lights_of(light_dirs, view_dir)
     prior, row = None, jnp.asarray(-1, jnp.int32)
+    off = bool(robust_rounds) and OFFSET
     if materials is not None:
-        start, prior, row = _material_start(ratio_cl, w, lights, model, materials)
+        start, prior, row = _material_start(ratio_cl, w, lights, model, materials, offset=off)
         theta0 = start if theta0 is None else theta0
     elif theta0 is None:
-        theta0 = _initial_theta(ratio_cl, w, lights, model)
+        theta0 = _initial_theta(ratio_cl, w, lights, model, offset=off)
+    if robust_rounds:   # the first solve already weighs the observations its start explains badly
+        w0 = _normalized_weights(w0 * _bright_enough(ratio_cl, w0))
+        w = _robust_weights(theta0, ratio_cl, w0, lights, model, prior, offset=off)
     args = (ratio_cl, w, lights, prior)
     run = {"optimistix": _solve_optimistix, "jaxopt": _solve_jaxopt, "native": _solve_native}[solver]
-    theta, ok, steps = run(_VarProResidual(model), theta0, args, max_steps, rtol, atol)
+    theta, ok, steps = run(_VarProResidual(model, off), theta0, args, max_steps, rtol, atol)
     bad = ~jnp.all(jnp.isfinite(theta))
     theta = jnp.where(bad, theta0, theta)
-    for _ in range(robust_rounds):
-        w = _robust_weights(theta, ratio_cl, w, lights, model, prior)
-        theta_r, ok, steps_r = run(_VarProResidual(model), theta, (ratio_cl, w, lights, prior), max_steps, rtol, atol)
+    for _ in range(robust_rounds - 1):
+        w = _robust_weights(theta, ratio_cl, w0, lights, model, prior, offset=off)
+        theta_r, ok, steps_r = run(_VarProResidual(model, off), theta, (ratio_cl, w, lights, prior), max_steps, rtol,
+                                   atol)
         bad = ~jnp.all(jnp.isfinite(theta_r))
         theta = jnp.where(bad, theta, theta_r)
         steps = steps + steps_r
+    if robust_rounds and APPEARANCE_STEPS:
+        theta = _refit_slopes(theta, ratio_cl, w_all, lights, model, prior, int(APPEARANCE_STEPS))
     normal, sx, sy = theta_to_geometry(theta)
     a, b = columns(theta, lights, model)
+    if robust_rounds and APPEARANCE == "all":
+        w = w_all
     rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w, prior=prior)
     diff = [ratio_cl[c] - rho_d[c] * a - rho_s[c] * b for c in range(3)]
     sq_l = diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]
