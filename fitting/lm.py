@@ -479,36 +479,39 @@ def _solve_native(fn, theta0, args, max_steps, rtol, atol):
         gn = gauss_newton(theta, ratio_cl, w, lights, fn.model, prior, offset=fn.offset)
         return gn.objective, gn.matrix, gn.grad
 
-    c0, a0, g0 = linearized(theta0)
-    lam0 = 1e-6 * jnp.max(jnp.diagonal(a0)) + jnp.finfo(dt).tiny ** 0.5
+    # The loop's first pass evaluates the start itself (d = 0, accepted, not counted as a step):
+    # one copy of the linearization in the compiled program.
     two = jnp.asarray(2.0, dt)
 
     def cond(st):
         return (st["step"] < max_steps) & ~st["done"]
 
     def body(st):
-        theta, cost, a, g, lam, nu = st["theta"], st["cost"], st["a"], st["g"], st["lam"], st["nu"]
-        d = _chol_solve(a + lam * jnp.eye(4, dtype=dt), -g)
+        theta, cost, a, g, lam, nu, first = st["theta"], st["cost"], st["a"], st["g"], st["lam"], st["nu"], st["first"]
+        d = jnp.where(first, 0.0, _chol_solve(a + lam * jnp.eye(4, dtype=dt), -g))
         t_new = theta + d
         c_new, a_new, g_new = linearized(t_new)
         pred = 0.5 * jnp.dot(d, lam * d - g)  # predicted reduction of the linear model (> 0)
         actual = cost - c_new
         ratio = actual / jnp.maximum(pred, jnp.finfo(dt).tiny)
-        accept = (ratio > 0) & jnp.isfinite(c_new)
+        accept = first | ((ratio > 0) & jnp.isfinite(c_new))
         small_step = jnp.all(jnp.abs(d) <= atol + rtol * jnp.abs(theta))
         small_df = jnp.abs(actual) <= atol + rtol * cost
         # a rejected step that could gain at most a rounding-level change of the cost: the cost is
         # at its minimum up to rounding (in float32 the cost is only known to ~1e-6 relative)
         stalled = ~accept & (pred <= _rounding_floor(dt, rtol) * cost)
-        done = jnp.where(accept, small_step & small_df, stalled)
+        done = ~first & jnp.where(accept, small_step & small_df, stalled)
         lam_acc = lam * jnp.maximum(1 / 3, 1 - (2 * ratio - 1) ** 3)
+        lam_first = 1e-6 * jnp.max(jnp.diagonal(a_new)) + jnp.finfo(dt).tiny ** 0.5
         return {"theta": jnp.where(accept, t_new, theta), "cost": jnp.where(accept, c_new, cost),
                 "a": jnp.where(accept, a_new, a), "g": jnp.where(accept, g_new, g),
-                "lam": jnp.where(accept, lam_acc, lam * nu), "nu": jnp.where(accept, two, nu * 2),
-                "step": st["step"] + 1, "done": done}
+                "lam": jnp.where(first, lam_first, jnp.where(accept, lam_acc, lam * nu)),
+                "nu": jnp.where(accept, two, nu * 2), "step": st["step"] + jnp.where(first, 0, 1).astype(jnp.int32),
+                "done": done, "first": jnp.zeros((), bool)}
 
-    st0 = {"theta": theta0, "cost": c0, "a": a0, "g": g0, "lam": lam0, "nu": two,
-           "step": jnp.zeros((), jnp.int32), "done": jnp.zeros((), bool)}
+    st0 = {"theta": theta0, "cost": jnp.asarray(jnp.inf, dt), "a": jnp.eye(4, dtype=dt), "g": jnp.zeros(4, dt),
+           "lam": jnp.ones((), dt), "nu": two, "step": jnp.zeros((), jnp.int32), "done": jnp.zeros((), bool),
+           "first": jnp.ones((), bool)}
     st = jax.lax.while_loop(cond, body, st0)
     return st["theta"], st["done"], st["step"]
 
@@ -596,21 +599,27 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
         theta0 = start if theta0 is None else theta0
     elif theta0 is None:
         theta0 = _initial_theta(ratio_cl, w, lights, model, offset=off)
-    if robust_rounds:   # the first solve already weighs the observations its start explains badly
-        w0 = _normalized_weights(w0 * _bright_enough(ratio_cl, w0))
-        w = _robust_weights(theta0, ratio_cl, w0, lights, model, prior, offset=off)
-    args = (ratio_cl, w, lights, prior)
     run = {"optimistix": _solve_optimistix, "jaxopt": _solve_jaxopt, "native": _solve_native}[solver]
-    theta, ok, steps = run(_VarProResidual(model, off), theta0, args, max_steps, rtol, atol)
-    bad = ~jnp.all(jnp.isfinite(theta))
-    theta = jnp.where(bad, theta0, theta)
-    for _ in range(robust_rounds - 1):
-        w = _robust_weights(theta, ratio_cl, w0, lights, model, prior, offset=off)
-        theta_r, ok, steps_r = run(_VarProResidual(model, off), theta, (ratio_cl, w, lights, prior), max_steps, rtol,
-                                   atol)
-        bad = ~jnp.all(jnp.isfinite(theta_r))
-        theta = jnp.where(bad, theta, theta_r)
-        steps = steps + steps_r
+    if robust_rounds:
+        # every round weighs the observations by how badly the current fit explains them (the first:
+        # its start) and solves again; one solver body in a loop (compiled once)
+        w0 = _normalized_weights(w0 * _bright_enough(ratio_cl, w0))
+
+        def round_(_, st):
+            th, _ok, n = st
+            w_r = _robust_weights(th, ratio_cl, w0, lights, model, prior, offset=off)
+            th_r, ok_r, n_r = run(_VarProResidual(model, off), th, (ratio_cl, w_r, lights, prior), max_steps, rtol,
+                                  atol)
+            bad_r = ~jnp.all(jnp.isfinite(th_r))
+            return jnp.where(bad_r, th, th_r), ok_r & ~bad_r, n + n_r
+
+        theta, ok, steps = jax.lax.fori_loop(0, robust_rounds, round_,
+                                             (theta0, jnp.zeros((), bool), jnp.zeros((), jnp.int32)))
+        bad = jnp.zeros((), bool)
+    else:
+        theta, ok, steps = run(_VarProResidual(model), theta0, (ratio_cl, w, lights, prior), max_steps, rtol, atol)
+        bad = ~jnp.all(jnp.isfinite(theta))
+        theta = jnp.where(bad, theta0, theta)
     if robust_rounds and APPEARANCE_STEPS:
         theta = _refit_slopes(theta, ratio_cl, w_all, lights, model, prior, int(APPEARANCE_STEPS))
     normal, sx, sy = theta_to_geometry(theta)
