@@ -21,6 +21,10 @@ A `Prior` (optional everywhere) adds 0.5 k_rho |rho_s - mu|^2 + 0.5 k_s |(s_x, s
 objective: a Gaussian prior on the lobe's amplitude and log-slopes (a texel's material, see
 `fitting.materials`). The rho term changes the 2 x 2 projection (still closed form); the slope
 term adds k_s to the Gauss-Newton matrix and k_s (s - s_mu) to the gradient.
+
+`ambient` (optional everywhere, a 0/1 factor): a constant per channel is fitted with rho and
+projected out with it, by centring the observations and the columns (`centre`): light the
+model has no term for (ambient light, a diffuse that darkens toward grazing) then bends no normal.
 """
 
 from __future__ import annotations
@@ -217,10 +221,11 @@ def nnls2(saa, sab, sbb, har, hbr, lam, lam_s=0.0):
     return rho_d, rho_s
 
 
-def _centre(w, *rows):
-    """Rows minus their w-weighted means: the constant column (an offset per channel) projected out."""
+def centre(w, ambient, *rows):
+    """Rows minus `ambient` times their w-weighted means: with `ambient` = 1 a constant column (an
+    ambient term per channel, free in sign) is projected out of the fit; with 0 nothing changes."""
     total = jnp.maximum(jnp.sum(w), jnp.finfo(w.dtype).tiny)
-    return [x - jnp.sum(w * x, axis=-1, keepdims=True) / total for x in rows]
+    return [x - ambient * (jnp.sum(w * x, axis=-1, keepdims=True) / total) for x in rows]
 
 
 def _sums(a, b, ratio_cl, w):
@@ -242,19 +247,19 @@ def project_rho_columns(a: Float[Array, " L"], b: Float[Array, " L"], ratio_cl: 
 
 def projected_cost_offset(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"],
                           lights: Lights, model: str, prior: Prior | None = None, *,
-                          offset: bool = False) -> Float[Array, ""]:
-    return projected_cost_offset_and_rho_d(theta, ratio_cl, w, lights, model, prior, offset=offset)[0]
+                          ambient=None) -> Float[Array, ""]:
+    return projected_cost_offset_and_rho_d(theta, ratio_cl, w, lights, model, prior, ambient=ambient)[0]
 
 
 def projected_cost_offset_and_rho_d(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"],
                                     lights: Lights, model: str, prior: Prior | None = None, *,
-                                    offset: bool = False) -> tuple[Float[Array, ""], Float[Array, "3"]]:
+                                    ambient=None) -> tuple[Float[Array, ""], Float[Array, "3"]]:
     """2 * projected objective - sum w R^2 = sum_c (rho_c^T (G + lam) rho_c - 2 rho_c^T h_c), from the sums of
     one pass (no residuals): enough to rank starting points (it cancels where the fit is close,
     so it is not the cost itself). With a `prior`, its terms are included (twice, as the rest)."""
     a, b = columns(theta, lights, model)
-    if offset:
-        a, b, ratio_cl = _centre(w, a, b, ratio_cl)
+    if ambient is not None:
+        a, b, ratio_cl = centre(w, ambient, a, b, ratio_cl)
     _, _, saa, sab, sbb, har, hbr = _sums(a, b, ratio_cl, w)
     lam = ridge_of(w)
     if prior is None:
@@ -295,11 +300,11 @@ class GaussNewton(NamedTuple):
 
 
 def gauss_newton(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"], lights: Lights,
-                 model: str, prior: Prior | None = None, *, offset: bool = False) -> GaussNewton:
+                 model: str, prior: Prior | None = None, *, ambient=None) -> GaussNewton:
     """Cost, exact gradient and Kaufman Gauss-Newton matrix of the projected cost (module docstring)."""
     a, b, da, db = columns_and_derivatives(theta, lights, model)
-    if offset:
-        a, b, da, db, ratio_cl = _centre(w, a, b, da, db, ratio_cl)
+    if ambient is not None:
+        a, b, da, db, ratio_cl = centre(w, ambient, a, b, da, db, ratio_cl)
     wa, wb, saa, sab, sbb, har, hbr = _sums(a, b, ratio_cl, w)   # G and h of the projection
     lam = ridge_of(w)
     lam_s, hbr_p = _prior_terms(prior, hbr, lam)

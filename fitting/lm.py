@@ -37,6 +37,7 @@ objective starts the solver.
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -48,12 +49,12 @@ from jaxrender.maths import normalize
 
 from ._varpro import (
     RIDGE,
-    _centre,
     S_MAX,
     S_MIN,
     Lights,
     Prior,
     columns,
+    centre,
     columns_from_frame,
     gauss_newton,
     geometry_to_theta,
@@ -104,9 +105,6 @@ TAU_LOG_SLOPE = 0.35
 TAU_RHO_REL = 0.35
 TAU_RHO_FLOOR = 0.05
 DIM_FRACTION = 0.08
-APPEARANCE = "all"
-OFFSET = True
-APPEARANCE_STEPS = 6
 ROBUST_SCALE = 2.5  # Cauchy weights: an observation ROBUST_SCALE times the median residual off weighs 1/2
 COLOUR_EPS = 1e-3   # log(rho_d + eps): the colour a texel's material is recognised by
 
@@ -232,7 +230,29 @@ def _chol_solve(a, b):
     return _forward_sub(low.T[::-1, ::-1], _forward_sub(low, b)[::-1])[::-1]
 
 
-def _compress(theta, args, model, offset=False):
+class Stage(NamedTuple):
+    """What a solve of a real-capture fit (`fit_texel`'s rounds) fits: `ambient` 1/0 (a constant
+    per channel projected out, `fitting._varpro.centre`) and `free` (4: 1 where the parameter
+    moves, 0 where it is held)."""
+
+    ambient: Float[Array, ""]
+    free: Float[Array, "4"]
+
+
+def _staged(gn, stage: Stage | None):
+    """(objective, gradient, Gauss-Newton matrix) with the held parameters' rows and columns of
+    the matrix replaced by the identity and their gradient by 0: a damped step leaves them."""
+    if stage is None:
+        return gn.objective, gn.grad, gn.matrix
+    f = stage.free
+    return gn.objective, f * gn.grad, jnp.outer(f, f) * gn.matrix + jnp.diag(1.0 - f)
+
+
+def _ambient(stage: Stage | None):
+    return None if stage is None else stage.ambient
+
+
+def _compress(theta, args, model):
     """(r, J): a 5-residual problem with the same value and Gauss-Newton model as the projected fit.
 
     With objective c, gradient g and Gauss-Newton matrix M of the projected fit (`gauss_newton`, one
@@ -242,14 +262,13 @@ def _compress(theta, args, model, offset=False):
     their `3L x 4` Jacobian are replaced by 5 numbers and a 4 x 4 triangle.) M is lifted by 1e-7 of
     its mean diagonal to stay definite where a parameter has no effect (a black texel).
     """
-    ratio_cl, w, lights, prior = args
-    gn = gauss_newton(theta, ratio_cl, w, lights, model, prior, offset=offset)
-    m = gn.matrix
+    ratio_cl, w, lights, prior, stage = args
+    objective, grad, m = _staged(gauss_newton(theta, ratio_cl, w, lights, model, prior, ambient=_ambient(stage)), stage)
     dt = m.dtype
     lift = 1e-7 * jnp.trace(m) / 4 + jnp.finfo(dt).tiny ** 0.5
     low = _cholesky(m + lift * jnp.eye(4, dtype=dt))
-    r_lin = _forward_sub(low, gn.grad)
-    two_c = 2 * gn.objective
+    r_lin = _forward_sub(low, grad)
+    two_c = 2 * objective
     lin2 = jnp.sum(r_lin * r_lin)
     # |L^-1 g|^2 <= 2c in exact arithmetic (a projection of the residual); keep 0.5 |r|^2 = c under rounding
     r_lin = r_lin * jnp.where(lin2 > two_c, jnp.sqrt(two_c / jnp.where(lin2 > 0, lin2, 1.0)), 1.0)
@@ -264,18 +283,18 @@ def _compress(theta, args, model, offset=False):
     return reflect @ r, reflect @ jac
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3))
-def _residual(theta, args, model, offset):
-    return _compress(theta, args, model, offset)[0]
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _residual(theta, args, model):
+    return _compress(theta, args, model)[0]
 
 
 @_residual.defjvp
-def _residual_jvp(model, offset, primals, tangents):
+def _residual_jvp(model, primals, tangents):
     """The tangent J d of the compressed residual (`_compress`); the observations (`args`) are
     data, not parameters: their tangents are ignored."""
     theta, args = primals
     d_theta, _ = tangents
-    r, jac = _compress(theta, args, model, offset)
+    r, jac = _compress(theta, args, model)
     return r, jac @ d_theta
 
 
@@ -283,10 +302,9 @@ class _VarProResidual(eqx.Module):
     """theta -> the compressed residual of the projected fit (`_compress`): the solvers' residual."""
 
     model: str = eqx.field(static=True)
-    offset: bool = eqx.field(static=True, default=False)   # an offset per channel projected out (`_centre`)
 
     def __call__(self, theta, args):
-        return _residual(theta, args, self.model, self.offset)
+        return _residual(theta, args, self.model)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -331,7 +349,7 @@ def _start_normals(ratio_cl, w, lights):
     return n_ps, jnp.where(n_peak[2] > 0.05, n_peak, n_ps)
 
 
-def _material_start(ratio_cl, w, lights, model, table: MaterialTable, offset: bool = False):
+def _material_start(ratio_cl, w, lights, model, table: MaterialTable, ambient=None):
     """(theta0, prior, row) of a texel fitted with a material table (`MaterialTable`).
 
     Each row's lobe at the better of the two start normals is scored by its projected objective
@@ -346,7 +364,7 @@ def _material_start(ratio_cl, w, lights, model, table: MaterialTable, offset: bo
     def row_score(prior, colour, spread):
         def at(n):
             th = jnp.concatenate([geometry_to_theta(n, 1.0, 1.0)[:2], prior.s])
-            score, rho_d = projected_cost_offset_and_rho_d(th, ratio_cl, w, lights, model, prior, offset=offset)
+            score, rho_d = projected_cost_offset_and_rho_d(th, ratio_cl, w, lights, model, prior, ambient=ambient)
             d = (jnp.log(rho_d + COLOUR_EPS) - colour) / spread
             # the Gaussian colour likelihood of the material (negative log, up to a constant)
             return th, score, 0.5 * jnp.sum(d * d) + 3 * jnp.log(spread)
@@ -359,18 +377,18 @@ def _material_start(ratio_cl, w, lights, model, table: MaterialTable, offset: bo
     total = jnp.where(jnp.isfinite(table.log_share), scores + 2 * var * (colour_nll - table.log_share), jnp.inf)
     row = jnp.argmin(total)
     prior = jax.tree_util.tree_map(lambda x: x[row], priors)
-    generic = _initial_theta(ratio_cl, w, lights, model, prior=prior, normals=normals, offset=offset)
+    generic = _initial_theta(ratio_cl, w, lights, model, prior=prior, normals=normals, ambient=ambient)
     cand = jnp.concatenate([thetas, generic[None]])
-    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model, prior, offset=offset))(cand)
+    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model, prior, ambient=ambient))(cand)
     score = jnp.where(jnp.concatenate([jnp.isfinite(table.log_share), jnp.ones(1, bool)]), score, jnp.inf)
     return cand[jnp.argmin(score)].astype(dt), prior, row.astype(jnp.int32)
 
 
-def _initial_theta(ratio_cl, w, lights, model, prior: Prior | None = None, normals=None, offset: bool = False):
+def _initial_theta(ratio_cl, w, lights, model, prior: Prior | None = None, normals=None, ambient=None):
     dt = ratio_cl.dtype
     normals = jnp.stack(_start_normals(ratio_cl, w, lights)) if normals is None else normals
     sig = jnp.asarray(SIGMA_STARTS, dt)
-    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model, prior, offset=offset))
+    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model, prior, ambient=ambient))
     # the better normal at the middle slopes, then the 3 x 3 slopes with that normal
     mid = sig[len(SIGMA_STARTS) // 2]
     normal = normals[jnp.argmin(score(jax.vmap(lambda n: geometry_to_theta(n, mid, mid))(normals)))]
@@ -473,11 +491,12 @@ def _solve_native(fn, theta0, args, max_steps, rtol, atol):
     precision (a stationary point).
     """
     dt = theta0.dtype
-    ratio_cl, w, lights, prior = args
+    ratio_cl, w, lights, prior, stage = args
 
     def linearized(theta):
-        gn = gauss_newton(theta, ratio_cl, w, lights, fn.model, prior, offset=fn.offset)
-        return gn.objective, gn.matrix, gn.grad
+        objective, grad, matrix = _staged(gauss_newton(theta, ratio_cl, w, lights, fn.model, prior,
+                                                       ambient=_ambient(stage)), stage)
+        return objective, matrix, grad
 
     # The loop's first pass evaluates the start itself (d = 0, accepted, not counted as a step):
     # one copy of the linearization in the compiled program.
@@ -516,15 +535,15 @@ def _solve_native(fn, theta0, args, max_steps, rtol, atol):
     return st["theta"], st["done"], st["step"]
 
 
-def _robust_weights(theta, ratio_cl, w, lights, model, prior, offset: bool = False):
+def _robust_weights(theta, ratio_cl, w, lights, model, prior, ambient=None):
     """Weights of an iteratively reweighted fit (Cauchy): w_l / (1 + (e_l / (ROBUST_SCALE m))^2),
     e_l the RMS residual of light l over the channels at the fit `theta`, m the median of e over
     the valid lights; normalized to mean 1 over them. Shadows the model cannot cast, highlights
     it cannot shape and interreflections weigh little; a capture the model explains keeps
     nearly uniform weights."""
     a, b = columns(theta, lights, model)
-    if offset:
-        a, b, ratio_cl = _centre(w, a, b, ratio_cl)
+    if ambient is not None:
+        a, b, ratio_cl = centre(w, ambient, a, b, ratio_cl)
     rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w, prior=prior)
     e2 = sum((ratio_cl[c] - rho_d[c] * a - rho_s[c] * b) ** 2 for c in range(3))
     valid = w > 0
@@ -535,22 +554,28 @@ def _robust_weights(theta, ratio_cl, w, lights, model, prior, offset: bool = Fal
     return _normalized_weights(w / (1.0 + e2 / (ROBUST_SCALE**2 * med)))
 
 
-def _refit_slopes(theta, ratio_cl, w, lights, model, prior, steps: int):
-    """`steps` damped Gauss-Newton steps on the slopes alone (the normal held), for the weights `w`
-    (the appearance stage: every valid observation, no offset)."""
-    dt = theta.dtype
+def _staged_rounds(run, fn, theta0, ratio_cl, w, lights, model, prior, robust_rounds, max_steps, rtol, atol):
+    """The solves of a real-capture fit, one solver body in a loop (compiled once):
+    `robust_rounds` geometry rounds (every parameter, an ambient term projected out, the
+    observations reweighted by how badly the current parameters explain them, `_robust_weights`,
+    without the dimmest ones, `_bright_enough`), then an appearance round (the slopes alone, every
+    valid observation at its weight, no ambient term: the parameters that predict new lights).
+    Returns (theta, every round converged, steps)."""
+    dt = theta0.dtype
+    w_geo = _normalized_weights(w * _bright_enough(ratio_cl, w))
+    geometry = Stage(jnp.ones((), dt), jnp.ones(4, dt))
+    appearance = Stage(jnp.zeros((), dt), jnp.asarray([0.0, 0.0, 1.0, 1.0], dt))
 
-    def body(_, st):
-        th, lam = st
-        gn = gauss_newton(th, ratio_cl, w, lights, model, prior)
-        m = gn.matrix[2:, 2:]
-        m = m + (lam * jnp.diagonal(m) + jnp.finfo(dt).tiny ** 0.5) * jnp.eye(2, dtype=dt)
-        d = _chol_solve(m, -gn.grad[2:])
-        trial = th.at[2:].add(d)
-        better = projected_objective(trial, ratio_cl, w, lights, model, prior)[0] < gn.objective
-        return jnp.where(better, trial, th), jnp.where(better, lam * 0.3, lam * 10.0)
+    def round_(i, st):
+        th, ok, n = st
+        last = i == robust_rounds
+        stage = jax.tree_util.tree_map(lambda a, b: jnp.where(last, a, b), appearance, geometry)
+        w_r = jnp.where(last, w, _robust_weights(th, ratio_cl, w_geo, lights, model, prior, ambient=stage.ambient))
+        th_r, ok_r, n_r = run(fn, th, (ratio_cl, w_r, lights, prior, stage), max_steps, rtol, atol)
+        bad = ~jnp.all(jnp.isfinite(th_r))
+        return jnp.where(bad, th, th_r), ok & ok_r & ~bad, n + n_r
 
-    return jax.lax.fori_loop(0, steps, body, (theta, jnp.asarray(1e-3, dt)))[0]
+    return jax.lax.fori_loop(0, robust_rounds + 1, round_, (theta0, jnp.ones((), bool), jnp.zeros((), jnp.int32)))
 
 
 def _bright_enough(ratio_cl, w):
@@ -589,43 +614,29 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
     finite = jnp.all(jnp.isfinite(ratio), axis=-1) & jnp.isfinite(weight)
     weight = jnp.where(finite, jnp.maximum(weight, 0.0), 0.0)
     ratio_cl = jnp.where(finite[None, :], ratio.T, 0.0)
-    w = w0 = w_all = _normalized_weights(weight)
+    w = _normalized_weights(weight)
     n_valid = jnp.sum(w > 0)
     lights = lights_of(light_dirs, view_dir)
     prior, row = None, jnp.asarray(-1, jnp.int32)
-    off = bool(robust_rounds) and OFFSET
+    one, zero = jnp.ones((), dt), jnp.zeros((), dt)
+    ambient = one if robust_rounds else None
     if materials is not None:
-        start, prior, row = _material_start(ratio_cl, w, lights, model, materials, offset=off)
+        start, prior, row = _material_start(ratio_cl, w, lights, model, materials, ambient=ambient)
         theta0 = start if theta0 is None else theta0
     elif theta0 is None:
-        theta0 = _initial_theta(ratio_cl, w, lights, model, offset=off)
+        theta0 = _initial_theta(ratio_cl, w, lights, model, ambient=ambient)
     run = {"optimistix": _solve_optimistix, "jaxopt": _solve_jaxopt, "native": _solve_native}[solver]
     if robust_rounds:
-        # every round weighs the observations by how badly the current fit explains them (the first:
-        # its start) and solves again; one solver body in a loop (compiled once)
-        w0 = _normalized_weights(w0 * _bright_enough(ratio_cl, w0))
-
-        def round_(_, st):
-            th, _ok, n = st
-            w_r = _robust_weights(th, ratio_cl, w0, lights, model, prior, offset=off)
-            th_r, ok_r, n_r = run(_VarProResidual(model, off), th, (ratio_cl, w_r, lights, prior), max_steps, rtol,
-                                  atol)
-            bad_r = ~jnp.all(jnp.isfinite(th_r))
-            return jnp.where(bad_r, th, th_r), ok_r & ~bad_r, n + n_r
-
-        theta, ok, steps = jax.lax.fori_loop(0, robust_rounds, round_,
-                                             (theta0, jnp.zeros((), bool), jnp.zeros((), jnp.int32)))
+        theta, ok, steps = _staged_rounds(run, _VarProResidual(model), theta0, ratio_cl, w, lights, model, prior,
+                                          robust_rounds, max_steps, rtol, atol)
         bad = jnp.zeros((), bool)
     else:
-        theta, ok, steps = run(_VarProResidual(model), theta0, (ratio_cl, w, lights, prior), max_steps, rtol, atol)
+        theta, ok, steps = run(_VarProResidual(model), theta0, (ratio_cl, w, lights, prior, None), max_steps, rtol,
+                               atol)
         bad = ~jnp.all(jnp.isfinite(theta))
         theta = jnp.where(bad, theta0, theta)
-    if robust_rounds and APPEARANCE_STEPS:
-        theta = _refit_slopes(theta, ratio_cl, w_all, lights, model, prior, int(APPEARANCE_STEPS))
     normal, sx, sy = theta_to_geometry(theta)
     a, b = columns(theta, lights, model)
-    if robust_rounds and APPEARANCE == "all":
-        w = w_all
     rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w, prior=prior)
     diff = [ratio_cl[c] - rho_d[c] * a - rho_s[c] * b for c in range(3)]
     sq_l = diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]
