@@ -31,17 +31,26 @@ import numpy as np
 
 from jaxrender.io import atomic_path, write_btf, write_btf_previews
 
-from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, SOLVERS, default_tolerances, fit_texels
+from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, SOLVERS, MaterialTable, default_tolerances, fit_texels
+from .materials import estimate_materials, no_materials, sample_indices
 from .pyramid import build_pyramid
 
 __all__ = ["fit_observations", "fit_maps", "fit_chunks", "fit_chunk", "chunk_plan", "level0_channels", "write_fit",
-           "DEFAULT_CHUNK", "TILE", "PARTIAL"]
+           "fit_materials", "DEFAULT_CHUNK", "TILE", "PARTIAL", "METHODS", "DEFAULT_METHOD"]
 
 DEFAULT_CHUNK = 4096
 # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
 TILE = 32
 PARTIAL = ".partial"
-ROBUST_ROUNDS = 2   # reweighted solves (the first weighted at its start) (fitting.lm._robust_weights) in a fit with materials
+# "robust" (default, every capture): materials shared by the texels (`fitting.materials`, one global
+# pass over a sample) give each texel's lobe a prior; ROBUST_ROUNDS reweighted geometry solves and
+# an appearance solve per texel (`fitting.lm.fit_texel`). "plain": per-texel least squares (paper 004).
+METHODS = ("robust", "plain")
+DEFAULT_METHOD = "robust"
+ROBUST_ROUNDS = 2
+_METHOD_TEXT = {"robust": "levenberg-marquardt, variable projection of rho_d, rho_s; material priors, "
+                          "robust geometry rounds with an ambient term, appearance round",
+                "plain": "levenberg-marquardt, variable projection of rho_d, rho_s"}
 _FIELDS = ("rho_d", "rho_s", "normal", "sigma_x", "sigma_y", "residual", "cost", "converged", "num_steps", "n_valid",
            "material")
 
@@ -166,9 +175,11 @@ def chunk_path(partial: Path, index: int) -> Path:
     return partial / f"chunk_{index:06d}.npz"
 
 
-def check_settings(solver: str, chunk: int, max_steps: int) -> None:
+def check_settings(solver: str, chunk: int, max_steps: int, method: str = DEFAULT_METHOD) -> None:
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}: use one of {SOLVERS}")
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}: use one of {METHODS}")
     if chunk < 1 or max_steps < 1:
         raise ValueError("chunk and max_steps must be >= 1")
 
@@ -185,6 +196,65 @@ def assemble_maps(results: list[dict[str, np.ndarray]], size: tuple[int, int]) -
     """Per-chunk flat results (in texel order) -> `H W ...` maps."""
     maps = {name: np.concatenate([r[name] for r in results]) for name in _FIELDS}
     return {name: v.reshape(tuple(size) + v.shape[1:]) for name, v in maps.items()}
+
+
+def read_texels(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], indices: np.ndarray,
+                chunk: int) -> tuple[np.ndarray, np.ndarray]:
+    """(ratio, weight) of the texels `indices` (sorted flat indices), read chunk by chunk."""
+    ratios, weights = [], []
+    for first in np.unique(indices // chunk) * chunk:
+        pick = indices[(indices >= first) & (indices < first + chunk)]
+        r, w = read(int(pick[0]), int(pick[-1] - pick[0] + 1))
+        ratios.append(np.asarray(r)[pick - pick[0]])
+        weights.append(np.asarray(w)[pick - pick[0]])
+    return np.concatenate(ratios), np.concatenate(weights)
+
+
+_TABLE_FIELDS = ("rho_s", "s", "log_share", "colour", "colour_spread", "noise")
+
+
+def table_to_numpy(table: MaterialTable) -> dict[str, np.ndarray]:
+    return {name: np.asarray(getattr(table, name)) for name in _TABLE_FIELDS}
+
+
+def table_from_numpy(arrays) -> MaterialTable:
+    return MaterialTable(*(jax.numpy.asarray(arrays[name]) for name in _TABLE_FIELDS))
+
+
+def fit_materials(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], n_valid: np.ndarray, light_dirs,
+                  view_dir, *, solver: str, chunk: int, max_steps: int, model: str,
+                  partial: Path | None) -> tuple[MaterialTable, dict]:
+    """The global pass of a robust fit: the material table of a sample of the texels with valid
+    observations (`fitting.materials`; the sample fitted by the same compiled program as the
+    tiles, with no priors). Saved in `partial` and reloaded from there on a resumed fit."""
+    saved = partial / "materials.npz" if partial is not None else None
+    if saved is not None and saved.is_file():
+        try:
+            with np.load(saved) as data:
+                return table_from_numpy(data), json.loads(str(data["info"]))
+        except (OSError, ValueError, KeyError):
+            pass   # unreadable: estimate again
+    flat = np.asarray(n_valid).reshape(-1)
+    indices = sample_indices(np.flatnonzero(flat >= 8))
+    total = flat.size
+    _, tile, padded = chunk_plan(total, chunk)
+    if indices.size:
+        ratio, weight = read_texels(read, indices, chunk)
+        parts = []
+        for start in range(0, indices.size, padded):
+            count = min(padded, indices.size - start)
+            parts.append(fit_chunk(lambda s, c: (ratio[s:s + c], weight[s:s + c]), start, count, padded, light_dirs,
+                                   view_dir, tile=tile, model=model, solver=solver, max_steps=max_steps,
+                                   materials=no_materials()))
+        fits = {k: np.concatenate([p[k] for p in parts]) for k in _FIELDS}
+        table, info = estimate_materials(ratio, weight, light_dirs, view_dir, model=model, fits=fits)
+    else:
+        table, info = no_materials(), {"materials": 0, "sample": 0}
+    if saved is not None:
+        with atomic_path(saved) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, info=json.dumps(info), **table_to_numpy(table))
+    return table, info
 
 
 def fit_chunks(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], size: tuple[int, int], light_dirs,
@@ -234,26 +304,43 @@ def fit_chunks(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], size: 
 def fit_maps(obs, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK, max_steps: int = DEFAULT_MAX_STEPS,
              model: str = "reciprocal", partial_dir: str | os.PathLike | None = None,
              progress: bool | None = None, on_chunk: Callable[[int], object] | None = None,
-             materials=None) -> dict[str, np.ndarray]:
+             method: str = DEFAULT_METHOD) -> dict[str, np.ndarray]:
     """Fit every texel of `Observations`; returns `H W ...` numpy maps of the `TexelFit` fields.
 
+    `method`: "robust" (default; materials shared by the texels, robust geometry and appearance
+    rounds: `METHODS`) or "plain" (per-texel least squares).
     `partial_dir`: checkpoint finished chunks there and reuse the ones already present.
     `progress`: None = a tqdm bar on a terminal only, False = never, True = always.
     """
-    check_settings(solver, chunk, max_steps)
+    return _fit_maps(obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model, partial_dir=partial_dir,
+                     progress=progress, on_chunk=on_chunk, method=method)[0]
+
+
+def _fit_maps(obs, *, solver, chunk, max_steps, model, partial_dir, progress, on_chunk=None,
+              method=DEFAULT_METHOD) -> tuple[dict[str, np.ndarray], dict]:
+    """`fit_maps` and the material pass's info (empty for the plain method)."""
+    check_settings(solver, chunk, max_steps, method)
     h, w = obs.size
     total = h * w
     ratio = np.asarray(obs.ratio).reshape(total, obs.n_lights, 3)
     weight = np.asarray(obs.weight).reshape(total, obs.n_lights)
     settings = {"solver": solver, "chunk": chunk, "max_steps": max_steps, "model": model,
-                "dtype": str(ratio.dtype)}
+                "dtype": str(ratio.dtype), "method": method}
     partial = None
     if partial_dir is not None:
         partial = Path(partial_dir)
         _prepare_partial(partial, _fingerprint(obs, settings))
-    return fit_chunks(lambda s, c: (ratio[s:s + c], weight[s:s + c]), (h, w), obs.light_dirs, obs.view_dir,
-                      solver=solver, chunk=chunk, max_steps=max_steps, model=model, partial=partial,
-                      progress=progress, on_chunk=on_chunk, materials=materials)
+
+    def read(s, c):
+        return ratio[s:s + c], weight[s:s + c]
+
+    table, info = None, {}
+    if method == "robust":
+        table, info = fit_materials(read, np.sum(weight > 0, axis=1), obs.light_dirs, obs.view_dir, solver=solver,
+                                    chunk=chunk, max_steps=max_steps, model=model, partial=partial)
+    maps = fit_chunks(read, (h, w), obs.light_dirs, obs.view_dir, solver=solver, chunk=chunk, max_steps=max_steps,
+                      model=model, partial=partial, progress=progress, on_chunk=on_chunk, materials=table)
+    return maps, info
 
 
 def level0_channels(maps: dict[str, np.ndarray], obs) -> dict[str, np.ndarray]:
@@ -275,12 +362,12 @@ def level0_channels(maps: dict[str, np.ndarray], obs) -> dict[str, np.ndarray]:
 
 def write_fit(btf_dir: Path, maps: dict[str, np.ndarray], counts, *, solver: str, chunk: int, max_steps: int,
               model: str, pyramid: bool, seconds: float, cpu_seconds: float | None = None,
-              meta: dict | None = None) -> Path:
+              meta: dict | None = None, method: str = DEFAULT_METHOD, materials: dict | None = None) -> Path:
     """Level 0 (`btf.json` last), its previews and the EM pyramid of fitted maps; removes `.partial/`.
     `counts`: `Observations` or a dict of `n_valid`, `n_saturated`, `n_dark` maps."""
     level0 = level0_channels(maps, counts)
     rtol, atol = default_tolerances(np.float32)  # the fit always sees float32 observations
-    info = {"fit": {"solver": solver, "method": "levenberg-marquardt, variable projection of rho_d, rho_s",
+    info = {"fit": {"solver": solver, "method": _METHOD_TEXT[method],
                     "chunk": chunk, "max_steps": max_steps, "rtol": rtol, "atol": atol,
                     "devices": jax.local_device_count(),
                     "converged_fraction": float(np.mean(maps["converged"])),
@@ -288,6 +375,8 @@ def write_fit(btf_dir: Path, maps: dict[str, np.ndarray], counts, *, solver: str
                     "median_steps": float(np.median(maps["num_steps"])), "seconds": round(seconds, 3)}}
     if cpu_seconds is not None:  # this process's CPU time (robust to a shared machine's load)
         info["fit"]["cpu_seconds"] = round(cpu_seconds, 3)
+    if materials:
+        info["fit"]["materials"] = materials
     info.update(meta or {})
     write_btf(btf_dir, [level0], model=model, meta=info)
     write_btf_previews(btf_dir, level0)
@@ -300,14 +389,14 @@ def write_fit(btf_dir: Path, maps: dict[str, np.ndarray], counts, *, solver: str
 
 def fit_observations(obs, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK,
                      max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal", pyramid: bool = True,
-                     progress: bool | None = None, meta: dict | None = None) -> Path:
+                     progress: bool | None = None, meta: dict | None = None, method: str = DEFAULT_METHOD) -> Path:
     """Fit in-memory `Observations` into the BTF directory `btf_dir` (checkpointed and resumable)."""
     btf_dir = Path(btf_dir)
     if np.asarray(obs.ratio).dtype != np.float32:
         raise ValueError("fit_observations fits float32 observations")
     t0, c0 = time.perf_counter(), time.process_time()
-    maps = fit_maps(obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model, partial_dir=btf_dir / PARTIAL,
-                    progress=progress)
+    maps, materials = _fit_maps(obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
+                                partial_dir=btf_dir / PARTIAL, progress=progress, method=method)
     return write_fit(btf_dir, maps, obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
                      pyramid=pyramid, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0,
-                     meta=dict(meta or {}))
+                     meta=dict(meta or {}), method=method, materials=materials)

@@ -53,15 +53,14 @@ from ._varpro import (
     S_MIN,
     Lights,
     Prior,
-    columns,
     centre,
+    columns,
     columns_from_frame,
     gauss_newton,
     geometry_to_theta,
     lights_of,
     project_rho_columns,
     projected_cost_offset,
-    projected_objective,
     projected_cost_offset_and_rho_d,
     theta_to_geometry,
 )
@@ -357,7 +356,8 @@ def _material_start(ratio_cl, w, lights, model, table: MaterialTable, ambient=No
     prior is the texel's. The start is the best, under that prior, of the rows' lobes and the
     generic 3 x 3 slope grid (`_initial_theta`)."""
     dt = ratio_cl.dtype
-    mean_sq = jnp.sum(w * (ratio_cl[0] ** 2 + ratio_cl[1] ** 2 + ratio_cl[2] ** 2)) / (3 * jnp.maximum(jnp.sum(w), 1e-30))
+    sq = ratio_cl[0] ** 2 + ratio_cl[1] ** 2 + ratio_cl[2] ** 2
+    mean_sq = jnp.sum(w * sq) / (3 * jnp.maximum(jnp.sum(w), 1e-30))
     priors = _material_priors(table, mean_sq)
     normals = jnp.stack(_start_normals(ratio_cl, w, lights))
 
@@ -618,8 +618,7 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
     n_valid = jnp.sum(w > 0)
     lights = lights_of(light_dirs, view_dir)
     prior, row = None, jnp.asarray(-1, jnp.int32)
-    one, zero = jnp.ones((), dt), jnp.zeros((), dt)
-    ambient = one if robust_rounds else None
+    ambient = jnp.ones((), dt) if robust_rounds else None
     if materials is not None:
         start, prior, row = _material_start(ratio_cl, w, lights, model, materials, ambient=ambient)
         theta0 = start if theta0 is None else theta0

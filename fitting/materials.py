@@ -28,9 +28,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._varpro import columns, geometry_to_theta, lights_of
 from jaxrender.brdf import SIGMA_FLOOR
 
+from ._varpro import columns, geometry_to_theta, lights_of
 from .lm import COLOUR_EPS, MaterialTable, TexelFit, fit_texels
 
 __all__ = ["estimate_materials", "sample_indices", "MAX_MATERIALS", "SAMPLE_TEXELS", "no_materials"]
@@ -148,24 +148,28 @@ def estimate_materials(ratio, weight, light_dirs, view_dir, *, model: str = "rec
     n = ratio.shape[0]
     if fits is None and n:
         fits = (fit or (lambda r, w: fit_texels(r, w, dirs, view, model=model)))(ratio, weight)
-    keep = (np.asarray(fits.n_valid) >= 8) & np.all(np.isfinite(np.asarray(fits.normal)), -1) if n else np.zeros(0, bool)
+    if n == 0:
+        return no_materials(), {"materials": 0, "sample": 0}
+    fields = ("normal", "rho_d", "rho_s", "sigma_x", "sigma_y", "n_valid")
+    fits = {k: np.asarray(fits[k] if isinstance(fits, dict) else getattr(fits, k)) for k in fields}
+    keep = (fits["n_valid"] >= 8) & np.all(np.isfinite(fits["normal"]), -1)
     if keep.sum() < 16:
         return no_materials(), {"materials": 0, "sample": n}
     ratio, weight = ratio[keep], weight[keep]
-    fits = jax.tree_util.tree_map(lambda x: np.asarray(x)[keep], fits)
+    fits = {k: v[keep] for k, v in fits.items()}
     n = ratio.shape[0]
-    normals = np.asarray(fits.normal, np.float32)
-    theta_s = np.log(np.maximum(np.stack([fits.sigma_x, fits.sigma_y], -1) - SIGMA_FLOOR, 1e-6))
+    normals = np.asarray(fits["normal"], np.float32)
+    theta_s = np.log(np.maximum(np.stack([fits["sigma_x"], fits["sigma_y"]], -1) - SIGMA_FLOOR, 1e-6))
     valid = weight > 0
     nv = np.maximum(valid.sum(1), 1)
     w = np.where(valid, weight * (nv / np.maximum(weight.sum(1), 1e-30))[:, None], 0.0).astype(np.float64)
     r64 = np.where(valid[..., None], ratio, 0.0).astype(np.float64)
     mean_sq = np.maximum(np.einsum("tl,tlc->t", w, r64 * r64) / (3 * nv), 1e-30)
-    colour = _colour(np.asarray(fits.rho_d, np.float64))
+    colour = _colour(np.asarray(fits["rho_d"], np.float64))
 
     # texels whose free lobe carries a visible share of their light: their slopes seed the lobes
     ab = np.asarray(_columns_of_each(normals, theta_s.astype(np.float32), dirs, view, model), np.float64)
-    spec = np.einsum("tl,tl->t", w, ab[:, 1] ** 2) * np.mean(np.asarray(fits.rho_s, np.float64) ** 2, -1)
+    spec = np.einsum("tl,tl->t", w, ab[:, 1] ** 2) * np.mean(np.asarray(fits["rho_s"], np.float64) ** 2, -1)
     lobed = spec / (mean_sq * 3 * nv) > LOBE_SHARE
 
     # clusters of colour
