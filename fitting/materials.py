@@ -41,7 +41,8 @@ LOBE_SHARE = 0.02     # a lobe "carries a visible share" above this fraction of 
 MIN_MEMBERS = 64      # sampled texels per material, at least
 COLOUR_SPREAD_FLOOR = 0.05
 SPLIT_SPREAD = 0.2    # a cluster whose log-colour spreads more than this is split
-_GRID = np.array([-0.7, -0.35, 0.0, 0.35, 0.7])   # log-slope offsets tried around a cluster's median
+_COARSE = np.log(np.geomspace(0.02, 0.64, 11) - SIGMA_FLOOR)   # isotropic log-slopes of the coarse search
+_GRID = np.array([-0.17, 0.0, 0.17])   # log-slope offsets of the refinement around the best
 _ALS_ROUNDS = 6
 _REASSIGN_ROUNDS = 2
 _MATTE_S = float(np.log(0.3))
@@ -201,14 +202,14 @@ def estimate_materials(ratio, weight, light_dirs, view_dir, *, model: str = "rec
             if members.size < MIN_MEMBERS // 2:
                 rows.append(None)
                 continue
-            best = None
-            for dx in _GRID:
-                for dy in _GRID:
-                    s = s0 + np.array([dx, dy])
-                    a, b = cols(s)
-                    mu, c = _shared_lobe_fit(r64[members], w[members], a[members], b[members])
-                    if best is None or c.sum() < best[0]:
-                        best = (c.sum(), s, mu)
+            def score(s, members=members):
+                a, b = cols(s)
+                mu, c = _shared_lobe_fit(r64[members], w[members], a[members], b[members])
+                return c.sum(), s, mu
+
+            if round_ == 0:   # a coarse isotropic search over every slope first
+                s0 = min((score(np.full(2, x)) for x in _COARSE), key=lambda t: t[0])[1]
+            best = min((score(s0 + np.array([dx, dy])) for dx in _GRID for dy in _GRID), key=lambda t: t[0])
             centre = colour[members].mean(0)
             spread = max(float(np.sqrt(np.mean((colour[members] - centre) ** 2))), COLOUR_SPREAD_FLOOR)
             rows.append((best[1], best[2], centre, spread, members.size))
