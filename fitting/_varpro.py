@@ -225,7 +225,12 @@ def centre(w, ambient, *rows):
     """Rows minus `ambient` times their w-weighted means: with `ambient` = 1 a constant column (an
     ambient term per channel, free in sign) is projected out of the fit; with 0 nothing changes."""
     total = jnp.maximum(jnp.sum(w), jnp.finfo(w.dtype).tiny)
-    return [x - ambient * (jnp.sum(w * x, axis=-1, keepdims=True) / total) for x in rows]
+
+    def one(x):
+        wx = jnp.reshape(w, (1,) * (x.ndim - 1) + w.shape) * x
+        return x - ambient * (jnp.sum(wx, axis=-1, keepdims=True) / total)
+
+    return [one(x) for x in rows]
 
 
 def _sums(a, b, ratio_cl, w):
