@@ -12,8 +12,9 @@ API (one function):
 Each row needs `issue`, `target` (together they name the row of the summary table: keep them
 stable), `measured` (the text of the "measured" column) and `status` (the verdict: "met",
 "missed", ...); `notes` (text) and `figures` (numbers, for machines) are optional. The file
-`benchmarks/results/<name>.json` gets the rows plus the date, the command line and the machine
-load (`os.getloadavg`, the machine is shared) at the time of writing. With `quick=True`, or when
+`benchmarks/results/<name>.json` gets the rows plus the date, the command line, the CPU
+(`cpu_description`: model and vector extension) and the machine load (`os.getloadavg`, the
+machine is shared) at the time of writing. With `quick=True`, or when
 the environment variable BENCH_NO_RESULTS is set (`run_all.py --quick` sets it), nothing is
 written: smoke runs never overwrite measured figures, unless BENCH_RESULTS_DIR names another
 directory (`run_all.py --quick` sets it to a scratch directory and checks what lands there), where
@@ -30,6 +31,27 @@ from pathlib import Path
 
 RESULTS_DIR = Path(__file__).parent / "results"
 _REQUIRED = ("issue", "target", "measured", "status")
+_VECTOR_FLAGS = ("avx512f", "avx2", "avx", "sse4_2", "asimd", "sve")  # widest first
+
+
+def cpu_description() -> str:
+    """The CPU a figure came from: model and widest vector extension, e.g. 'AMD EPYC 9B14 (AVX-512)'
+    (machines of one kind differ; JAX's and the peers' code paths differ with the vector width)."""
+    import platform
+
+    model, flags = platform.processor() or platform.machine(), set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and model in ("", platform.machine(), platform.processor()):
+                model = value.strip()
+            elif key.strip() in ("flags", "Features") and not flags:
+                flags = set(value.split())
+    except OSError:
+        pass
+    widest = next((f for f in _VECTOR_FLAGS if f in flags), None)
+    names = {"avx512f": "AVX-512", "avx2": "AVX2", "avx": "AVX", "sse4_2": "SSE4.2", "asimd": "NEON", "sve": "SVE"}
+    return f"{model} ({names[widest]})" if widest else model
 
 
 def write_results(name: str, rows: list[dict], *, quick: bool = False) -> Path | None:
@@ -49,6 +71,7 @@ def write_results(name: str, rows: list[dict], *, quick: bool = False) -> Path |
         "date_utc": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M"),
         "load_average_1_5_15": [round(x, 2) for x in os.getloadavg()],
         "cpu_count": os.cpu_count(),
+        "cpu": cpu_description(),
         "rows": rows,
     }
     directory.mkdir(exist_ok=True)

@@ -24,8 +24,9 @@ PAPER_W, PAPER_H = 720, 480
 
 def machine() -> str:
     import jax
+    from _results import cpu_description
 
-    return (f"{os.cpu_count()} CPU cores, JAX {jax.__version__} on {jax.default_backend()}, "
+    return (f"{os.cpu_count()} CPU cores of {cpu_description()}, JAX {jax.__version__} on {jax.default_backend()}, "
             f"load average {os.getloadavg()[0]:.1f} at start")
 
 

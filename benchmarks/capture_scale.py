@@ -168,7 +168,7 @@ for rep, path in enumerate(["in-memory", "store", "store", "in-memory", "in-memo
     else:
         maps = fit_maps(obs, chunk=4096, progress=False)
     out[path].append([time.perf_counter() - t0, time.process_time() - c0])
-    out.setdefault("maps_" + path, maps["rho_d"])
+    out.setdefault("maps_" + path, maps.rho_d)
 same = np.array_equal(out.pop("maps_store"), out.pop("maps_in-memory"))
 print(json.dumps({**out, "same_maps": bool(same)}))
 """

@@ -224,7 +224,7 @@ def main(argv=None) -> dict:
             t0, c0 = time.perf_counter(), time.process_time()
             if name in solvers:
                 maps[name] = fit_maps(obs, solver=name, chunk=args.chunk, progress=False)
-                jax.block_until_ready(maps[name]["rho_d"])
+                jax.block_until_ready(maps[name].rho_d)
                 worker_cpu = 0.0
             else:
                 out = pool.map(_peer_texel, jobs[name]) if pool else [_peer_texel(j) for j in jobs[name]]
@@ -248,8 +248,8 @@ def main(argv=None) -> dict:
         out = []
         for i in subset:
             r, c = divmod(int(i), size)
-            out.append(float(texel_cost(m["rho_d"][r, c], m["rho_s"][r, c], m["normal"][r, c], m["sigma_x"][r, c],
-                                        m["sigma_y"][r, c], ratio[i], weight[i], dirs, obs.view_dir)))
+            out.append(float(texel_cost(m.rho_d[r, c], m.rho_s[r, c], m.normal[r, c], m.sigma_x[r, c],
+                                        m.sigma_y[r, c], ratio[i], weight[i], dirs, obs.view_dir)))
         return out
 
     texels = {**{s: total for s in solvers}, "varpro": n_scipy, "naive": n_scipy}

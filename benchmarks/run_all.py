@@ -125,7 +125,8 @@ def summary_table(old_rows: list[list[str]], results: list[dict]) -> list[str]:
     for rec in results:
         for res in rec["rows"]:
             load = rec.get("load_average_1_5_15", [float("nan")])[0]
-            measured = f"{res['measured']} [{rec['date_utc']} UTC, load {load:.1f}, `{rec['command']}`]"
+            cpu = rec.get("cpu", "CPU not recorded")
+            measured = f"{res['measured']} [{rec['date_utc']} UTC, {cpu}, load {load:.1f}, `{rec['command']}`]"
             cells = [res["issue"], res["target"], measured, res["status"], res.get("notes", "")]
             key = (_cell(res["issue"]), _cell(res["target"]))
             if key in index:

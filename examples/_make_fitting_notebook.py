@@ -34,19 +34,19 @@ rho_s are solved in closed form inside the solver (variable projection); the sol
 and the two slopes."""),
     nbf.v4.new_code_cell("""t0 = time.perf_counter()
 maps = fitting.fit_maps(obs, chunk=256, progress=False)
-print(f"fit (incl. compilation): {time.perf_counter() - t0:.1f} s, converged {np.mean(maps['converged']):.1%}")
-n_t, n_f = np.asarray(truth.lobe0.normal), maps["normal"]
+print(f"fit (incl. compilation): {time.perf_counter() - t0:.1f} s, converged {np.mean(maps.converged):.1%}")
+n_t, n_f = np.asarray(truth.lobe0.normal), maps.normal
 normal_err = np.degrees(np.arccos(np.clip(np.sum(n_t * n_f, -1), -1, 1)))
-sigma_err = np.abs(maps["sigma_x"] / np.asarray(truth.lobe0.sigma_x) - 1)
-rho_d_err = np.abs(maps["rho_d"] - np.asarray(truth.rho_d)).max(-1)
+sigma_err = np.abs(maps.sigma_x / np.asarray(truth.lobe0.sigma_x) - 1)
+rho_d_err = np.abs(maps.rho_d - np.asarray(truth.rho_d)).max(-1)
 print(f"normal error: median {np.median(normal_err):.3f} deg, max {normal_err.max():.3f} deg")
 print(f"sigma_x relative error: median {np.median(sigma_err):.2%}; "
       f"rho_d abs error: median {np.median(rho_d_err):.4f}")"""),
     nbf.v4.new_code_cell("""fig, axes = plt.subplots(2, 4, figsize=(11, 5.5))
-pairs = [("rho_d", np.asarray(truth.rho_d), maps["rho_d"]),
+pairs = [("rho_d", np.asarray(truth.rho_d), maps.rho_d),
          ("normal", 0.5 + 0.5 * n_t, 0.5 + 0.5 * n_f),
-         ("sigma_x", np.asarray(truth.lobe0.sigma_x), maps["sigma_x"]),
-         ("sigma_y", np.asarray(truth.lobe0.sigma_y), maps["sigma_y"])]
+         ("sigma_x", np.asarray(truth.lobe0.sigma_x), maps.sigma_x),
+         ("sigma_y", np.asarray(truth.lobe0.sigma_y), maps.sigma_y)]
 for c, (name, a, b) in enumerate(pairs):
     for r, img in enumerate((a, b)):
         kw = dict(vmin=0, vmax=0.5) if img.ndim == 2 else {}
@@ -55,7 +55,7 @@ for c, (name, a, b) in enumerate(pairs):
 fig.tight_layout()"""),
     nbf.v4.new_markdown_cell("## Relight under a light direction the capture did not contain"),
     nbf.v4.new_code_cell("""from fitting import direction_from_angles
-fitted = fitting.TexelFit(**{k: jnp.asarray(v) for k, v in maps.items()}).texel()
+fitted = jax.tree.map(jnp.asarray, maps).texel()  # the fit maps are a TexelFit of H x W arrays
 wi, wo = direction_from_angles(40.0, 100.0), np.array([0.0, 0.0, 1.0])
 relit_true = np.asarray(fitting.relight(truth, wi, wo))
 relit_fit = np.asarray(fitting.relight(fitted, wi, wo))
@@ -72,16 +72,16 @@ the merge dominates it, so the slopes of weak-specular texels are the least cons
 The residual map shows the noise floor rather than fit error."""),
     nbf.v4.new_code_cell("""sig_true = np.minimum(np.asarray(truth.lobe0.sigma_x),
                       np.asarray(truth.lobe0.sigma_y)).ravel()
-sig_rel = np.maximum(sigma_err, np.abs(maps["sigma_y"] / np.asarray(truth.lobe0.sigma_y) - 1)).ravel()
+sig_rel = np.maximum(sigma_err, np.abs(maps.sigma_y / np.asarray(truth.lobe0.sigma_y) - 1)).ravel()
 fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
 axes[0].scatter(np.asarray(truth.lobe0.rho_s).mean(-1).ravel(), sig_rel, s=8)
 axes[0].set_xlabel("true rho_s (mean of RGB)"); axes[0].set_ylabel("relative slope error")
 axes[0].set_yscale("log")
-axes[1].imshow(maps["residual"], interpolation="nearest"); axes[1].set_title("residual (RMS)"); axes[1].axis("off")
+axes[1].imshow(maps.residual, interpolation="nearest"); axes[1].set_title("residual (RMS)"); axes[1].axis("off")
 rs_true = np.asarray(truth.lobe0.rho_s).mean(-1).ravel()
 weak = rs_true < np.median(rs_true)
 worst = np.unravel_index(np.argmax(normal_err), normal_err.shape)
-summary = {"converged": float(np.mean(maps["converged"])), "normal_err_median_deg": float(np.median(normal_err)),
+summary = {"converged": float(np.mean(maps.converged)), "normal_err_median_deg": float(np.median(normal_err)),
            "sigma_rel_err_median": float(np.median(sig_rel)), "rho_d_err_median": float(np.median(rho_d_err)),
            "relight_err": relight_err, "sigma_err_weak_specular": float(np.median(sig_rel[weak])),
            "sigma_err_strong_specular": float(np.median(sig_rel[~weak])), "worst_texel": [int(worst[0]), int(worst[1])]}

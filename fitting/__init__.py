@@ -21,6 +21,7 @@ from .lm import TexelFit as TexelFit
 from .lm import fit_texel as fit_texel
 from .lm import fit_texels as fit_texels
 from .lm import texel_cost as texel_cost
+from .manifest import write_folder_manifest as write_folder_manifest
 from .manifest import write_manifest as write_manifest
 from .pyramid import build_pyramid as build_pyramid
 from .pyramid import pyramid_levels as pyramid_levels

@@ -1,81 +1,8 @@
-"""EM multi-resolution BTF (paper 004, section 3.2, after Takeda et al., refs. 21-22).
-
-A texel of level l+1 summarizes the specular slope distributions of its 4 children at level l
-(each with 1 or 2 lobes) as a mixture of at most 2 anisotropic lobes, fitted by EM; `rho_d` is
-averaged. The kernel is batched over texels with the texel axis LAST (structure of arrays, see
-"Layout" below); `em_texel` is the one-texel call of the same kernel.
-
-Diffuse: `jaxrender.brdf` shades the diffuse term of a two-lobe texel with the weight-averaged
-normal normalize((1 - w) N0 + w N1), so a coarse texel whose lobes point in two directions keeps
-the children's mean normal for rho_d cos(theta_i).
-
-Slope space
------------
-For a lobe with normal N and frame (T, B, N) (`jaxrender.brdf.tangent_frame`: T = the sample x
-axis projected onto N's tangent plane), the slope distribution of eq. 1 is, with the half-vector's
-slopes p = h.T / h.N and q = h.B / h.N,
-
-    D = exp(-(p^2 / sigma_x^2 + q^2 / sigma_y^2)) = pi sigma_x sigma_y  N(p; 0, sigma_x^2 / 2) N(q; 0, sigma_y^2 / 2),
-
-an unnormalized Gaussian in (p, q) with standard deviation sigma / sqrt(2) per axis and integral
-pi sigma_x sigma_y over slope space. Each child lobe is represented by an `order` x `order`
-Gauss-Hermite product rule of that Gaussian: nodes (p, q) = (sigma_x a_i, sigma_y a_j) with
-a = the Hermite nodes of weight exp(-a^2), weights w_i w_j / pi (they sum to 1). Every node is
-turned into its unit half vector h = normalize(p T + q B + N) and then into the COMMON slope
-space of the coarse texel, the sample frame: x = (h.x / h.z, h.y / h.z). A lobe whose normal is
-the sample z maps to itself; a tilted normal moves the Gaussian to the normal's slope
-(n.x / n.z, n.y / n.z), with the mild projective distortion of the tilt carried by the nodes.
-
-Energy weights: a child lobe contributes to the average of its 4 children's reflectance
-rho_s D / cos_r with mass (1/4) m rho_s pi sigma_x sigma_y (m = 1 - weight for lobe 0, weight for
-lobe 1), so a node carries e = (1/4) m rho_s pi sigma_x sigma_y w_i w_j (RGB); the EM weight of a
-node is the mean of e over R, G, B.
-
-EM and the 1-or-2 rule
-----------------------
-`em_fit` is weighted EM for a mixture of K Gaussians with diagonal covariances in (x, y) (i.e.
-along the sample's x and y axes, which are the lobes' T and B up to the tilt), a variance floor
-of SIGMA_FLOOR^2 / 2, a fixed maximum number of iterations and a convergence check (|change of
-the weighted mean log-likelihood| < tol). On plain samples it is the textbook EM (checked against
-scikit-learn). For a texel the samples are grouped by child lobe: the E-step gives all nodes of
-one child lobe the same responsibility, from their weighted mean log-density (the expected
-log-density under the child lobe, exact with Gauss-Hermite nodes since log N is quadratic), and
-the M-step is the ordinary weighted one over the nodes (whose moments are the child lobes').
-This is hierarchical EM (Vasconcelos and Lippman) with VIRTUAL = 16 virtual samples per child
-lobe: the group's expected log-density is multiplied by 16 before the softmax over components,
-which sharpens the lobe-to-component assignment (with 1 the soft assignment lets both
-components collapse onto the moment match where the lobes form two close clusters). Without
-grouping, EM overfits the 3x3 node lattice (e.g. a narrow component on the central row of nodes),
-a likelihood optimum of the nodes but not a good summary of the lobes. The EM runs only for
-texels whose one-lobe summary is not good enough (below), initialized from the most energetic
-child lobe and the child lobe maximizing energy x squared normalized distance from it.
-
-Plain EM never drives a weight to 0, so the number of lobes is chosen by an L2 rule. Let p be the
-children's slope density (each child lobe as the Gaussian of its transported nodes' moments, with
-its energy as mass), q1 the single moment-matched Gaussian (mean and variance of all nodes: the
-LEAN/Toksvig-style one-lobe summary, which is also the 1-component maximum-likelihood fit) and q2
-the EM mixture. With e_k = ISE(p, q_k) / <p, p> (integrated squared error, closed form for
-Gaussians; it is the relative squared error of the rendered specular term over slope space):
-
-    two lobes  iff  e_1 > ONE_LOBE_TOLERANCE (0.01, i.e. one lobe is more than ~10 % RMS off)
-               and  e_2 < TWO_LOBE_GAIN * e_1 (0.5: the second lobe must halve the error).
-
-So 4 agreeing children (or children that differ by much less than their widths) give one lobe
-with weight 0 and lobe 1 a copy of lobe 0, never two copies. Lobes are ordered by descending
-weight: lobe 0 is the heavier one and `weight` (of lobe 1) is <= 1/2.
-
-From a Gaussian back to a lobe
-------------------------------
-For a fitted component k with mean slope (m_x, m_y) and responsibilities r_ik:
-normal = normalize(m_x, m_y, 1), then a few fixed-point steps N <- normalize(N + <p> T + <q> B)
-that move N until the responsibility-weighted mean of the nodes' slopes in N's own frame
-(p_i = h_i.T / h_i.N, q_i = h_i.B / h_i.N, (T, B) = tangent_frame(N)) is 0 (for a single child
-lobe this returns its normal exactly: its nodes are symmetric about it); then
-sigma_x^2 = 2 sum_i r_ik w_i p_i^2 / sum_i r_ik w_i (and sigma_y from q), floored at SIGMA_FLOOR
-(the second moment about the lobe's own normal: exact for an untilted lobe, and free of the
-sample-frame distortion for a tilted one); rho_s (RGB) = E_k / (pi_k pi sigma_x sigma_y), with
-E_k = sum_i r_ik e_i the component's energy and pi_k its mixture weight (1 for a single lobe):
-the total specular energy of the children is conserved exactly.
+"""EM multi-resolution BTF (paper 004, section 3.2): a texel of level l+1 summarizes the specular
+slope distributions of its 4 children as a mixture of at most 2 anisotropic lobes, fitted by
+hierarchical EM over Gauss-Hermite nodes in slope space; rho_d is averaged. Batched over texels
+with the texel axis last; `em_texel` is the one-texel call. How it works (slope space, energy
+weights, the 1-or-2-lobe rule, back to lobes) and why: docs/fitting.md, "The EM pyramid".
 """
 
 from __future__ import annotations

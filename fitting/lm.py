@@ -1,37 +1,8 @@
-"""Per-texel Levenberg-Marquardt fit of the anisotropic model (paper 004 eq. 1, design.md).
-
-Per texel the observations are `ratio` (`L 3`: reflectance R under each of L distant lights, RGB)
-with weights `weight` (`L`: 0 for an invalid observation) for light directions `light_dirs` and
-one view direction. The model is `jaxrender.brdf.reflectance` (the one BRDF of the toolkit):
-
-    R_lc = rho_d_c a_l(N) + rho_s_c b_l(N, sigma_x, sigma_y)
-
-with `a` the diffuse and `b` the specular column (`basis`). rho_d and rho_s enter linearly, so
-they are eliminated (variable projection, `fitting._varpro`): for a given nonlinear parameter
-vector the best non-negative (rho_d_c, rho_s_c) per channel is a 2-variable non-negative
-least-squares problem, solved in closed form with a small ridge (the specular column vanishes as
-sigma -> 0, and a lobe seen by one light would otherwise take unbounded rho_s). The nonlinear
-solver then sees only
-
-    theta = (p, q, s_x, s_y):  N = normalize(p, q, 1)  (always in the upper hemisphere),
-                               sigma = SIGMA_FLOOR + exp(clip(s, S_MIN, S_MAX))
-
-shared by the three channels, through a compressed residual (`_compress`): five numbers with the
-projected fit's value and Gauss-Newton model, computed in one pass over the lights (cost,
-gradient and the variable-projection Gauss-Newton matrix as sums over lights). The solver is
-optimistix's `LevenbergMarquardt` (default; its trust region told the cost's rounding level),
-jaxopt's (`solver="jaxopt"`, imported only when asked for) or a hand-written vmappable loop
-(`solver="native"`, Nielsen's damping on the same quantities). The objective all of them
-minimize is `cost + 0.5 lam |rho|^2` with lam ~1e-7 of the normal equations' diagonal
-(`fitting._varpro.ridge_of`); the cost reported, and compared in the tests (scipy included), is
-`cost = 0.5 * sum_l w_l sum_c (R_lc - model_lc)^2` with the weights scaled to mean 1 over the
-valid observations.
-
-Starting values: a photometric-stereo normal (weighted least squares of the luminance on the
-light directions, re-solved twice without the specular outliers and attached shadows) and the
-half vector of the brightest observation as two normal candidates (the better at sigma = 0.1
-kept), times a 3 x 3 grid of (sigma_x, sigma_y); the candidate with the lowest projected
-objective starts the solver.
+"""Per-texel Levenberg-Marquardt fit of the anisotropic model (paper 004 eq. 1, design.md):
+rho_d and rho_s eliminated by variable projection (`fitting._varpro`), the normal and two slopes
+fitted by optimistix's LM (default), jaxopt's or a native loop, from photometric-stereo and
+brightest-highlight starts. The parametrization, the objective and the starts: docs/fitting.md,
+"The per-texel fit".
 """
 
 from __future__ import annotations

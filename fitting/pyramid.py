@@ -3,8 +3,10 @@
 Level l+1 (ceil-half size, odd sizes edge-padded as `jaxrender.textures.downsample2`) is built
 from level l texel by texel with `fitting.em.em_downsample` (a large level 0 in bands of rows,
 `banded_downsample`, so memory does not grow with it): up to two anisotropic lobes per
-texel, `rho_d` averaged. Levels are written through `jaxrender.io.write_btf_levels`, which keeps
-level 0, writes `level_01.exr`, ... and rewrites `btf.json` last.
+texel, `rho_d` averaged. `pyramid_channels` gives the levels of an in-memory level 0 (a fit writes
+them with level 0, `btf.json` last); `build_pyramid` rebuilds them in a BTF directory through
+`jaxrender.io.write_btf_levels`, which keeps level 0, writes `level_01.exr`, ... and rewrites
+`btf.json` last, holding the directory's lock.
 """
 
 from __future__ import annotations
@@ -14,16 +16,20 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 
 from jaxrender.brdf import BTFTexel
-from jaxrender.io import InputError, read_btf, write_btf_levels
+from jaxrender.io import MASK_CHANNEL, InputError, output_lock, read_btf, write_btf_levels
+from jaxrender.textures import downsample2
 
 from .em import DEFAULT_ITERATIONS, DEFAULT_ORDER, ONE_LOBE_TOLERANCE, TWO_LOBE_GAIN, em_downsample
 
-__all__ = ["build_pyramid", "pyramid_levels", "pyramid_sizes", "banded_downsample", "BAND_TEXELS"]
+__all__ = ["build_pyramid", "pyramid_channels", "pyramid_levels", "pyramid_sizes", "banded_downsample",
+           "masked_average", "BAND_TEXELS"]
 
 BAND_TEXELS = 65536  # output texels per band of a large one-lobe level (16 EM chunks of 4096)
 
@@ -64,15 +70,35 @@ def banded_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations
             jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=0), *infos))
 
 
+@jax.jit
+def masked_average(coarse: BTFTexel, mask: Float[Array, "H W"]) -> tuple[BTFTexel, Float[Array, "h w"]]:
+    """(`coarse` as the average over its children inside `mask` only, the coarse mask).
+
+    Texels outside a capture's mask hold rho = 0, so a coarse texel's rho_d (the children's mean)
+    and its lobes' rho_s (the children's energy / 4) are those of its inside children times the
+    inside fraction f (`downsample2` of the mask, same padding): divided by f they are the inside
+    children's own; the lobes' shape is unchanged (outside children carry no energy)."""
+    frac = downsample2(mask[..., None])[..., 0]
+    scale = jnp.where(frac > 0, 1.0 / jnp.where(frac > 0, frac, 1.0), 0.0)[..., None]
+    scaled = eqx.tree_at(lambda t: (t.rho_d, t.lobe0.rho_s, t.lobe1.rho_s), coarse,
+                         (coarse.rho_d * scale, coarse.lobe0.rho_s * scale, coarse.lobe1.rho_s * scale))
+    return scaled, (frac > 0).astype(mask.dtype)
+
+
 def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = DEFAULT_ORDER,
                    iterations: int = DEFAULT_ITERATIONS, progress: Callable[[int], object] | None = None,
-                   ) -> tuple[list[BTFTexel], list[dict]]:
-    """Levels 1, 2, ... of an `H W` BTFTexel (level 0 not included) and per-level statistics."""
+                   mask: Float[Array, "H W"] | None = None) -> tuple[list[BTFTexel], list[dict]]:
+    """Levels 1, 2, ... of an `H W` BTFTexel (level 0 not included) and per-level statistics; with
+    a `mask` (1 fitted, 0 not) every coarse texel averages its inside children only (`masked_average`)
+    and each level's statistics carry its mask as `mask` (an `h w` array)."""
     count = len(pyramid_sizes(level0.weight.shape, levels=levels))
-    out, infos = [], []
+    out, infos, masks = [], [], []
     current = level0
     for _ in range(1, count):  # a handful of levels: each one is a vmapped kernel call
         current, info = banded_downsample(current, order=order, iterations=iterations)
+        if mask is not None:
+            current, mask = masked_average(current, jnp.asarray(mask, current.rho_d.dtype))
+            masks.append(mask)
         out.append(current)
         infos.append(info)
         if progress is not None:
@@ -83,6 +109,8 @@ def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = 
     stats = [{"size": list(level.weight.shape), "two_lobe_fraction": float(two),
               "max_iterations": int(iterations), "converged_fraction": float(converged)}
              for level, (two, iterations, converged) in zip(out, summary)]
+    for stat, level_mask in zip(stats, masks):
+        stat["mask"] = np.asarray(level_mask, np.float32)
     return out, stats
 
 
@@ -94,6 +122,28 @@ def _level_summary(infos):
                                  jnp.mean(info.converged.astype(jnp.float32))]) for info in infos])
 
 
+def pyramid_channels(level0: dict[str, np.ndarray], *, levels: int | None = None, order: int = DEFAULT_ORDER,
+                     iterations: int = DEFAULT_ITERATIONS, progress: Callable[[int], object] | None = None,
+                     ) -> tuple[list[dict[str, np.ndarray]], dict]:
+    """(levels 1, 2, ... as BTF channel dicts, btf.json's `pyramid` entry) of level 0's channels
+    (every lobe channel and the mask, as `jaxrender.io.complete_level` gives them): a masked level 0
+    gives masked levels (`masked_average`). See `build_pyramid`."""
+    texel = BTFTexel.from_channels(level0)
+    if not np.all(np.isfinite(np.asarray(texel.weight))):
+        raise ValueError("non-finite weight channel in level 0")
+    mask = level0.get(MASK_CHANNEL)
+    coarse, stats = pyramid_levels(texel, levels=levels, order=order, iterations=iterations, progress=progress,
+                                   mask=None if mask is None or np.all(mask > 0) else mask)
+    channels = [{name: np.asarray(v, dtype=np.float32) for name, v in t.to_channels().items()} for t in coarse]
+    for level, stat in zip(channels, stats):
+        if "mask" in stat:
+            level[MASK_CHANNEL] = stat.pop("mask")
+    meta = {"pyramid": {"method": "em", "order": order, "iterations": iterations,
+                        "one_lobe_tolerance": ONE_LOBE_TOLERANCE, "two_lobe_gain": TWO_LOBE_GAIN,
+                        "levels": stats}}
+    return channels, meta
+
+
 def build_pyramid(btf_dir: str | os.PathLike, *, levels: int | None = None, order: int = DEFAULT_ORDER,
                   iterations: int = DEFAULT_ITERATIONS, progress: Callable[[int], object] | None = None) -> Path:
     """Rebuild levels 1.. of the BTF directory `btf_dir` from its level 0 by EM; returns the directory.
@@ -101,18 +151,16 @@ def build_pyramid(btf_dir: str | os.PathLike, *, levels: int | None = None, orde
     `levels` is the total number of levels afterwards, level 0 included (default: down to 1x1);
     existing coarser levels are replaced. `progress(1)` is called after each level (e.g. a tqdm
     bar's `update`). `btf.json` is rewritten last with a `pyramid` entry (method and per-level
-    statistics); raises InputError for an incomplete or malformed directory.
+    statistics); raises InputError for an incomplete or malformed directory, `OutputBusy` when
+    another process writes it.
     """
     btf_dir = Path(btf_dir)
     if levels is not None and levels < 1:
         raise InputError(btf_dir, f"levels must be >= 1, got {levels}")
     _, existing = read_btf(btf_dir)
-    level0 = BTFTexel.from_channels(existing[0])
-    if not np.all(np.isfinite(np.asarray(level0.weight))):
+    if not np.all(np.isfinite(existing[0]["weight"])):
         raise InputError(btf_dir / "level_00.exr", "non-finite weight channel")
-    coarse, stats = pyramid_levels(level0, levels=levels, order=order, iterations=iterations, progress=progress)
-    channels = [{name: np.asarray(v, dtype=np.float32) for name, v in texel.to_channels().items()} for texel in coarse]
-    meta = {"pyramid": {"method": "em", "order": order, "iterations": iterations,
-                        "one_lobe_tolerance": ONE_LOBE_TOLERANCE, "two_lobe_gain": TWO_LOBE_GAIN,
-                        "levels": stats}}
-    return write_btf_levels(btf_dir, channels, start=1, meta=meta)
+    with output_lock(btf_dir):
+        channels, meta = pyramid_channels(existing[0], levels=levels, order=order, iterations=iterations,
+                                          progress=progress)
+        return write_btf_levels(btf_dir, channels, start=1, meta=meta)

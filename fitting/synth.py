@@ -444,6 +444,8 @@ def synth_capture(out_dir: str | os.PathLike, *, key: PRNGKeyArray, size: tuple[
         manifest = {
             "format": "jaxrender-capture", "version": 1, "size": [int(size[0]), int(size[1])],
             "response": response if image_format == "png" else "linear",
+            # float codes of the emulated camera (clipped at 1, dark below 2/255), not radiance
+            "encoding": "codes",
             "exposures_s": list(EXPOSURES_S), "view": {"theta_deg": 0.0, "phi_deg": 0.0},
             "white": {"reflectance": refl_list[0] if len(set(refl_list)) == 1 else refl_list, "images": white_names},
             "lights": light_entries,

@@ -1,34 +1,7 @@
-"""Physically based clear sky: single scattering by air molecules (Rayleigh) and aerosols (Mie)
-in a spherical exponential atmosphere (Nishita et al. 1993, the method paper 001 cites as [14]).
-
-Radiance seen from a point `altitude` metres above the ground, along a unit view direction d:
-
-    L(d) = E_sun * sum_i T(O -> P_i) T(P_i -> sun) [b_R rho_R(h_i) P_R(mu) + b_M rho_M(h_i) P_M(mu)] dt_i
-
-with densities rho(h) = exp(-h / H) (H = 8 km for Rayleigh, 1.2 km for Mie), transmittances
-exp(-(b_R tau_R + b_M^ext tau_M)) from optical depths integrated numerically along the view ray
-and toward the sun, mu = d . sun_dir, the Rayleigh phase 3/(16 pi) (1 + mu^2) and the
-Cornette-Shanks Mie phase. Samples along both rays are placed at t = t_max u^2 (u midpoints),
-which concentrates them near the viewer where the air is dense (grazing rays near the horizon).
-A sample point whose path to the sun hits the Earth is in the Earth's shadow (dusk).
-
-Accuracy of the default 16 view / 8 light samples against 256 / 64 (sky half of a 64x33 envmap,
-luminance): median texel error 0.2-0.5 %, worst texel 1-4 % of the brightest sky radiance (near
-the horizon with a low sun); 32 / 16 samples cut that by 4x. tests/test_sky.py checks the
-quadrature against an independent float64 brute force of the same integral.
-
-Frame: world, y up (the viewer at (0, R + altitude, 0)); the ground is y < 0 directions. Linear
-RGB, one wavelength per channel (680, 550, 440 nm coefficients).
-
-`sky_envmap` returns a lat-long map in Mitsuba 3's `envmap` orientation (src/emitters/envmap.cpp,
-identity `to_world`), checked against Mitsuba itself in tests/test_sky.py: a direction
-d = (x, y, z) has
-    u = atan2(x, -z) / (2 pi)  (mod 1),   v = acos(y) / pi,
-and Mitsuba looks the bitmap up at column position u W - 1/2 (column j centred at
-u = (j + 1/2) / W, wrapping) and row position v (H - 1) (row 0 is exactly the zenith +y, row
-H - 1 exactly the nadir: the rows include both poles). So the top row is straight up, the middle
-of the map the horizon, u = 1/2 (centre column) looks toward +z, u = 0 toward -z, u = 1/4 toward +x.
-`envmap_directions` gives the direction of every texel under this mapping.
+"""Physically based clear sky (Nishita et al. 1993, paper 001's [14]): single Rayleigh and Mie
+scattering in a spherical exponential atmosphere, y up, linear RGB; `sky_envmap` returns it as a
+lat-long map in Mitsuba 3's `envmap` orientation. The integral, its quadrature's accuracy and the
+map's orientation: docs/rendering.md.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Simulations that feed the renderer: ripple and dune automata, sand dust, fire, cloth (draped
-and moving), footprints in sand."""
+and moving), a costume on a motion-captured skeleton, footprints in sand."""
 
 from ._fields import FIELD_SUFFIXES as FIELD_SUFFIXES
 from ._fields import load_field as load_field
@@ -19,6 +19,15 @@ from .cloth import cloth_mesh as cloth_mesh
 from .cloth import drape_cloth as drape_cloth
 from .cloth import drape_garment as drape_garment
 from .cloth import simulate_cloth as simulate_cloth
+from .costume import BodyVolumes as BodyVolumes
+from .costume import Costume as Costume
+from .costume import advance_costume as advance_costume
+from .costume import body_volumes as body_volumes
+from .costume import costume_frames as costume_frames
+from .costume import dress_performer as dress_performer
+from .costume import performer_joints as performer_joints
+from .costume import volume_penetration as volume_penetration
+from .dance import noh_dance as noh_dance
 from .dunes import DuneParams as DuneParams
 from .dunes import dune_step as dune_step
 from .dunes import dune_transport as dune_transport
@@ -48,3 +57,9 @@ from .ripples import power_spectrum_along as power_spectrum_along
 from .ripples import ripple_step as ripple_step
 from .ripples import simulate_ripples as simulate_ripples
 from .ripples import spectral_centroid_wavelength as spectral_centroid_wavelength
+from .skeleton import Skeleton as Skeleton
+from .skeleton import SkeletonMotion as SkeletonMotion
+from .skeleton import forward_kinematics as forward_kinematics
+from .skeleton import place_motion as place_motion
+from .skeleton import pose_motion as pose_motion
+from .skeleton import skeleton_from_bvh as skeleton_from_bvh

@@ -1,41 +1,8 @@
 """Sand transport shared by the ripple and dune automata (paper 001 eqs. 1-4, Nishimori-Ouchi):
-saltation (every cell sends an amount of sand a hop downwind) and creep (isotropic smoothing).
-
-Grid convention: a field is `(..., H, W)`; x runs along the columns (last axis), y along the rows
-(second-to-last axis); boundaries are periodic. The wind direction `wind_deg` is measured from +x
-toward +y, so 0 blows along +x (to the right in an image) and 90 along +y (down the rows).
-
-One implementation of the hop for both automata (`deposit`), a scatter-add. For a wind along
-one grid axis (the common case) it is a window-1 scatter with no padding: the split hop's two
-shares travel as one complex number (near share real, far share imaginary) and the far share is
-rolled one cell afterwards (~8% faster per ripple step on 256x256 than a window-2 scatter of two
-reals into a padded field). An off-axis wind uses a windowed scatter-add (2x2 window) into a
-field padded by one row/column, the padding folded back for the periodic wrap. Measured on
-256x256 (benchmarks/ripples_speed.py) the scatter beats the gather formulations tried (a
-Horner sum of rolls over the dynamic hop range, dynamic slices of a tiled field): the hop range
-grows to ~25 cells as ripples grow, so a dense pass per offset does ~12x the work of a scatter.
-Leading batch axes are handled natively (folded into the scatter).
-
-Hop modes:
-- ``"split"``: linear share between the two nearest cells per axis (bilinear over 4 cells for an
-  off-axis wind): continuous and piecewise linear in the hop, so differentiable in the hop
-  parameters (forward and reverse mode).
-- ``"nearest"``: the whole amount lands on the cell nearest to the hop end, as in the paper.
-
-Conservation: the total is conserved exactly, bit for bit. In floating point a per-cell update
-H + delta rounds, and with a constant amount (the ripples' q) the rounding error is the same in
-every cell of a binade, so the total drifts linearly with the steps (measured in float32 at
-128x128, L0 = 9: 4.0e-4 of the total after 10,000 steps before this design; 2.5e-4 even with the
-creep written as fluxes and the split shares summing exactly, the rest being the biased rounding
-of H - q and of the scatter's sums). So every quantity that moves sand is kept on a fixed-point
-grid: a power of two `quantum` per field (`sand_quantum`: the float's last bit for 2x the
-largest |height| or amount), heights, amounts, split shares and creep fluxes are rounded to
-multiples of it before they move, and every sum of multiples of a power of two below 2^24
-quanta (2^53 in float64) is exact. Each amount is computed once and applied as -amount at its
-source and +amount where it lands. The price is resolution: float32 heights are kept to
-quantum ~ 2^-19 for heights up to 15 (float64: ~1e-15), and a creep flux below half a quantum
-is not moved. Derivatives pass through the rounding unchanged (`to_grid` has the identity as
-its tangent), i.e. they are those of the exact-arithmetic automaton.
+saltation (`deposit`: every cell sends an amount a hop downwind, one scatter-add; hop modes
+"split" (differentiable) and "nearest" (the paper)) and creep (isotropic smoothing), on periodic
+`(..., H, W)` fields with sand conserved bit for bit on a fixed-point grid (`sand_quantum`).
+Conventions, the scatter's design and the conservation argument: docs/desert.md.
 """
 
 from __future__ import annotations

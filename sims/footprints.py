@@ -1,28 +1,7 @@
-"""Footprints pressed into sand (paper 001, section 4 and Fig. 18, after Sumner, O'Brien and
-Hodgins 1998, "Animating Sand, Mud, and Snow").
-
-A footprint is made in two steps on a height field (`(H, W)`, x along the columns, y along the
-rows, cells `spacing` wide, heights in the same unit):
-
-1. `press_footprint`: the sole (a heel and a forefoot ellipse, `FootParams`) sinks `depth` below
-   the mean height of the sand under it; every column under the sole higher than the sole's
-   bottom is cut down to it, and the sand removed is spread over a ring around the sole (the
-   rim), so the print gets the raised lip of a real one. What leaves the sole lands on the rim:
-   the total is unchanged up to the rounding of the two sums.
-2. `relax_to_repose`: sand slides from every column whose slope to a neighbour (4 edge and 4
-   diagonal neighbours) exceeds the angle of repose toward that neighbour, a fraction of the
-   excess per iteration, until no slope exceeds it. Every pair of neighbours exchanges one
-   computed amount, added to one and subtracted from the other (as `sims._transport.creep`), so
-   the total is conserved to rounding; the border is closed (no sand crosses it).
-
-`press_trail` presses a whole walking trail (`trail_steps`: alternating left and right prints
-along a polyline) and then relaxes it. All functions are jittable and differentiable in the
-heights (the press and the relaxation are piecewise linear in them).
-
-Example::
-
-    centres, headings = trail_steps(jnp.asarray([[0.5, 1.0], [5.5, 1.5]]), stride=0.7, gait=0.16)
-    h = press_trail(h0, centres, headings, FootParams(), spacing=1 / 64)
+"""Footprints pressed into sand (paper 001 Fig. 18, after Sumner et al. 1998): `press_footprint`
+sinks a sole and piles the sand on a rim, `relax_to_repose` slides it to the angle of repose,
+`press_trail` presses and relaxes a walking trail; sand conserved to rounding, differentiable in
+the heights. The two steps in detail: docs/desert.md.
 """
 
 from __future__ import annotations

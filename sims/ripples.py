@@ -1,29 +1,6 @@
-"""Wind ripples: the Nishimori-Ouchi saltation + creep automaton (paper 001 eqs. 1-4).
-
-One step, all cells from the same state (synchronous):
-1. saltation (eqs. 1-3): every cell loses `q`, which lands L = L0 + b H cells downwind;
-2. creep (eq. 4): H + D [1/6 sum_NN H + 1/12 sum_NNN H - H].
-Periodic boundaries; H is the absolute height (sand depth). Grid and wind conventions, and the
-hop modes ``"split"`` (default, differentiable in L0, b, q) and ``"nearest"`` (the paper), are
-described in `sims._transport`.
-Sand is conserved exactly, in float32 too: what leaves a cell is what arrives elsewhere, bit for
-bit, on a fixed-point grid (`sims._transport`; 10,000 float32 steps of `sims ripples` at 128x128,
-L0 = 9 change the total by 2.4e-8, from rounding onto a coarser grid as the ripples grow).
-
-Derivatives: the split hop makes a run piecewise linear in L0, b, q, so `jax.grad` and
-`jax.jvp` agree with central differences over a few steps (tests/test_ripples.py). The automaton
-is chaotic, though: the pathwise derivative of a long run grows exponentially with the number of
-steps (d spectral-centroid wavelength / d L0 on 32x64 from the same initial field: -1.8 after
-100 steps, -660 after 300, 2e13 after 1000), while the wavelength itself is a smooth
-statistical function of L0 (benchmarks/ripples_wavelength.py). Differentiate short runs, or
-average over many initial fields and small perturbations, rather than one long run.
-
-Example::
-
-    key = jax.random.key(0)
-    h0 = init_ripples(key, (128, 128))                  # heights uniform in [1.0, 1.5)
-    h = simulate_ripples(h0, RippleParams(), steps=3000)
-    hs = simulate_ripples(init_ripples(key, (4, 64, 64)), RippleParams(L0=5.0), steps=500)  # a batch
+"""Wind ripples: the Nishimori-Ouchi saltation + creep automaton (paper 001 eqs. 1-4), synchronous
+steps on periodic fields, sand conserved exactly, differentiable in L0, b, q with the split hop.
+How long runs behave under differentiation, and an example: docs/desert.md.
 """
 
 from __future__ import annotations

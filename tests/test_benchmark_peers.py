@@ -54,3 +54,35 @@ def test_varpro_peer_reaches_the_naive_peers_optimum():
     assert abs(sol.cost - naive.cost) <= 1e-6 * naive.cost  # both converge to the same least-squares optimum
     model = fit_speed.numpy_model(x, dirs, view)
     assert abs(0.5 * np.sum((ratio - model) ** 2) - sol.cost) <= 1e-9 * sol.cost  # x carries the projected rho
+
+
+def _abort():
+    import os
+
+    os.abort()
+
+
+def _double(x):
+    return 2 * x
+
+
+def test_a_peer_that_aborts_is_reported_unavailable_not_fatal():
+    """Mitsuba's LLVM backend can die with SIGABRT (old LLVM, AVX-512): the child process dies, the
+    benchmark gets `PeerUnavailable` with the signal, and a dead peer stays dead."""
+    import pytest
+    from _peers import ChildPeer, PeerUnavailable
+
+    with ChildPeer("test peer") as peer:
+        assert peer.call(_double, 21) == 42
+        with pytest.raises(PeerUnavailable, match="test peer killed by SIGABRT"):
+            peer.call(_abort)
+        with pytest.raises(PeerUnavailable, match="SIGABRT"):
+            peer.call(_double, 1)
+
+
+def test_mitsuba_variant_probe_renders_in_a_child():
+    from _peers import mitsuba_variant
+
+    variant, note = mitsuba_variant(("no_such_variant", "scalar_rgb"))
+    assert variant == "scalar_rgb", note
+    assert "FALLBACK" in note and "no_such_variant" in note

@@ -45,6 +45,7 @@ def test_summary_table_keeps_rows_and_takes_measured_figures(tmp_path, monkeypat
     results = tmp_path / "results"
     results.mkdir()
     rec = {"date_utc": "2026-11-23 21:00", "command": "python benchmarks/x.py", "load_average_1_5_15": [3.0, 2, 1],
+           "cpu": "AMD EPYC 9B14 (AVX-512)",
            "rows": [{"issue": "2 b", "target": "updated row", "measured": "1.5x", "status": "missed"},
                     {"issue": "3 c", "target": "new row", "measured": "2x", "status": "met", "notes": "n"}]}
     (results / "x.json").write_text(json.dumps(rec))
@@ -53,5 +54,6 @@ def test_summary_table_keeps_rows_and_takes_measured_figures(tmp_path, monkeypat
     run_all.rebuild_table()
     text = md.read_text()
     assert "| 1 a | kept row | 3 s | met |  |" in text
-    assert "| 2 b | updated row | 1.5x [2026-11-23 21:00 UTC, load 3.0, `python benchmarks/x.py`] | missed |  |" in text
+    assert ("| 2 b | updated row | 1.5x [2026-11-23 21:00 UTC, AMD EPYC 9B14 (AVX-512), load 3.0, "
+            "`python benchmarks/x.py`] | missed |  |") in text
     assert "| 3 c | new row | 2x" in text and text.endswith(run_all.END + "\n\nrest\n")

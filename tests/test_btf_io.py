@@ -33,8 +33,9 @@ def _pyramid(rng, size=(7, 5)):
 
 
 def test_channel_names_match_design():
+    """design.md's channels, plus `mask` on every level (docs/formats.md: fitted texels)."""
     assert list(LOBE_CHANNELS) == DESIGN_LOBE
-    assert list(LEVEL0_CHANNELS) == DESIGN_LOBE + DESIGN_STATS
+    assert list(LEVEL0_CHANNELS) == DESIGN_LOBE + ["mask"] + DESIGN_STATS
 
 
 def test_round_trip_every_channel_on_every_level(tmp_path):
@@ -46,9 +47,9 @@ def test_round_trip_every_channel_on_every_level(tmp_path):
     assert meta["solver"] == "test" and "units" in meta
     assert [e["file"] for e in meta["levels"]] == ["level_00.exr", "level_01.exr", "level_02.exr"]
     assert [e["size"] for e in meta["levels"]] == [[7, 5], [4, 3], [2, 2]]
-    assert sorted(back[0]) == sorted(DESIGN_LOBE + DESIGN_STATS)
+    assert sorted(back[0]) == sorted(DESIGN_LOBE + DESIGN_STATS + ["mask"])  # mask: all 1 when not given
     for level in back[1:]:
-        assert sorted(level) == sorted(DESIGN_LOBE)
+        assert sorted(level) == sorted(DESIGN_LOBE + ["mask"])
     # float32 EXR channels: exact round trip.
     for original, loaded in zip(levels, back, strict=True):
         for name, value in original.items():
@@ -59,7 +60,7 @@ def test_round_trip_every_channel_on_every_level(tmp_path):
         for name in ("rho_s.G", "normal.Z", "sigma_y"):
             np.testing.assert_array_equal(back[i][f"lobe1.{name}"], levels[i][name])
     # Every channel is in the EXR file itself, not synthesised by the reader.
-    assert sorted(jio.read_exr(tmp_path / "btf" / "level_02.exr")) == sorted(DESIGN_LOBE)
+    assert sorted(jio.read_exr(tmp_path / "btf" / "level_02.exr")) == sorted(DESIGN_LOBE + ["mask"])
     # The channels feed the BRDF's texel type.
     texel = BTFTexel.from_channels(back[1])
     np.testing.assert_array_equal(np.asarray(texel.weight), levels[1]["weight"])

@@ -183,7 +183,7 @@ def test_images_must_agree_when_the_manifest_size_is_bad(tmp_path):
     edit_manifest(tmp_path, lambda m: m.pop("size"))
     write_png(tmp_path / "images/l2_e2.png", np.zeros((5, 5, 3)), srgb=False)
     lines = problems_of(tmp_path)
-    assert lines == [f"{tmp_path / 'capture.json'}: size: missing or not [H, W] with positive integers",
+    assert lines == [f"{tmp_path / 'capture.json'}: size: missing field",
                      f"{tmp_path / 'images/l2_e2.png'}: size 5x5 differs from {tmp_path / 'images/white_e0.png'}'s 4x5"]
 
 

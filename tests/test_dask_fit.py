@@ -15,13 +15,14 @@ distributed = pytest.importorskip("distributed")
 from fitting import fit_store, ingest_capture, open_store, synth_capture  # noqa: E402
 from jaxrender.io import read_btf  # noqa: E402
 
-CHUNK = 8  # 8 x 8 texels: 8 tiles, 8 tasks
+CHUNK = 8  # the 55 texels of the mask (8 x 8 texels): 7 tiles, 7 tasks
 
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     root = tmp_path_factory.mktemp("dask")
     capture = synth_capture(root / "capture", key=jax.random.key(11), size=(8, 8), lights=40, progress=False)
+    _add_mask_and_intensities(capture)
     store = ingest_capture(capture, root / "store", dtype="float32", tile=CHUNK, progress=False)
     # One persistent compilation cache for this process and the workers (they inherit the
     # environment): the tile program is compiled once, here, and loaded by every worker.
@@ -50,6 +51,32 @@ def setup(tmp_path_factory):
     cluster.close()
     for name, value in old_env.items():
         os.environ.pop(name) if value is None else os.environ.__setitem__(name, value)
+
+
+MASK = np.ones((8, 8))
+MASK[5:, :3] = 0  # 9 texels not fitted: tiles of the mask's texels, not of the image's
+
+
+def _add_mask_and_intensities(capture):
+    """The measured-capture extensions on the Dask path: a mask and per-light RGB intensities."""
+    import json
+
+    from jaxrender.io import write_png
+
+    write_png(capture / "mask.png", MASK, srgb=False)
+    manifest = json.loads((capture / "capture.json").read_text())
+    manifest["mask"] = "mask.png"
+    for i, light in enumerate(manifest["lights"]):
+        light["intensity"] = [1.0 + 0.01 * i, 1.0, 0.9]
+    (capture / "capture.json").write_text(json.dumps(manifest))
+
+
+def test_mask_texels_are_not_fitted(setup):
+    _, _, ref, _ = setup
+    np.testing.assert_array_equal(ref["mask"], MASK)
+    outside = MASK == 0
+    assert np.all(ref["n_valid"][outside] == 0) and np.all(ref["rho_d.R"][outside] == 0)
+    assert np.all(ref["n_valid"][~outside] > 0) and np.all(ref["converged"][~outside] == 1)
 
 
 def _assert_same(btf_dir, ref):
@@ -84,7 +111,7 @@ def test_a_killed_worker_does_not_fail_the_fit(setup):
     deadline = time.monotonic() + 300
     while not list((out / ".partial").glob("chunk_*.npz")) and time.monotonic() < deadline and thread.is_alive():
         time.sleep(0.01)
-    assert len(list((out / ".partial").glob("chunk_*.npz"))) < 8, "the fit finished before the kill"
+    assert len(list((out / ".partial").glob("chunk_*.npz"))) < 7, "the fit finished before the kill"
     os.kill(victim, signal.SIGKILL)
     thread.join(600)
     assert not thread.is_alive() and not errors, errors
@@ -113,7 +140,8 @@ def test_rerun_on_the_cluster_resumes_from_the_tiles_written(setup):
     fitted = []
     fit_store_maps(open_store(store_dir), partial_dir=out / ".partial", chunk=CHUNK, progress=False,
                    scheduler=client, on_chunk=fitted.append)
-    assert sorted(fitted) == sorted(set(range(8)) - {int(name[6:12]) for name in before})
+    n_tiles = -(-int(MASK.sum()) // CHUNK)  # tiles of the mask's 55 texels
+    assert sorted(fitted) == sorted(set(range(n_tiles)) - {int(name[6:12]) for name in before})
     assert all((out / ".partial" / name).stat().st_mtime_ns == t for name, t in before.items())
     fit_store(store_dir, out, chunk=CHUNK, pyramid=False, progress=False, scheduler=client)
     _assert_same(out, ref)

@@ -91,4 +91,5 @@ def test_missing_columns_and_bad_options(tmp_path, images):
     assert info.value.problems == [
         "--response: 'gamma' is not one of ('linear', 'srgb')",
         "--view: (95.0, 0.0) is not THETA PHI with theta in [0, 90)",
-        f"{tmp_path / 'IMAGES.csv'}: missing columns theta_deg, phi_deg, exposure_s (has image, kind)"]
+        f"{tmp_path / 'IMAGES.csv'}: missing columns exposure_s, theta_deg and phi_deg (or light_x, light_y, light_z) "
+        "(has image, kind)"]

@@ -1,161 +1,189 @@
-"""The Noh garment in motion with the polished floor's reflection (jaxrender.app.scenes.noh.motion),
-at a small size: the cloth continues frame to frame, what depends on the geometry follows it,
-and the floor reflects the garment and the flames without gaining light."""
+"""The Takigi Noh frame (jaxrender.app.scenes.noh.motion) at a small size: the robe continues frame
+to frame and what depends on it follows; the polished floor reflects without gaining light; the
+fires' depth maps and the G-buffer in two windows (and a box) equal one pass; the stage's
+unit fire irradiance against a dense float64 quadrature; its half-resolution shadows against PCSS
+at every pixel."""
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxrender.app.scenes.noh import default_btfs, noh_scene
-from jaxrender.app.scenes.noh.motion import STAGE_F0, moving_frame_jit, prepare_motion
-from jaxrender.app.scenes.noh.scene import garment_rig
-from jaxrender.fabric import fresnel_schlick
-from sims import BodyMotion, advance_cloth
+from jaxrender.app.scenes.noh.motion import (
+    STAGE_F0,
+    _cropped,
+    fire_depth_maps,
+    fire_shadows,
+    noh_frame_jit,
+    split_rasterize,
+)
+from jaxrender.app.scenes.noh.performer import performer_mesh
+from jaxrender.app.scenes.noh.rig import prepare_rig
+from jaxrender.app.scenes.noh.stage import FLAME_SIZE, cast_stage
+from jaxrender.fabric import depth_map, fresnel_schlick, raster_window, rasterize, spot_pinhole
+from jaxrender.shadows import pcss
+from sims import advance_costume, noh_dance
 
-_ROWS, _COLS = 10, 8
+_ROBE = dict(rows=12, cols=12, sleeve_rows=4, sleeve_cols=8, settle_steps=400)
+_mesh = eqx.filter_jit(performer_mesh)    # the helpers below jitted: eager op-by-op dispatch compiles every op
+_depth_maps = eqx.filter_jit(fire_depth_maps)
+_split = eqx.filter_jit(split_rasterize)
+_shadows = eqx.filter_jit(fire_shadows)
+_cast = eqx.filter_jit(cast_stage)
+_depth_map = eqx.filter_jit(depth_map)
+_rasterize = eqx.filter_jit(rasterize)
+
+UNIT_RTOL = 0.05        # 4 x 2 points over a flame quad against a 64 x 64 quadrature, >= 1 m away
+SHADOW_MEAN_TOL = 0.02  # half-resolution PCSS read back bilinearly: a block's blur at the soft edges
 
 
 @pytest.fixture(autouse=True, scope="module")
 def _implicit_rank_promotion():
-    """The Noh scene's own helpers (procedural brocade, flame billboards in `prepare`) broadcast
-    (3,) vectors against images implicitly; the strict setting of conftest is relaxed here only."""
+    """The Noh scene's helpers broadcast (3,) vectors against images implicitly; the strict
+    setting of conftest is relaxed here only."""
     with jax.numpy_rank_promotion("allow"):
         yield
 
 
 @pytest.fixture(scope="module")
 def setup(_implicit_rank_promotion):
-    btfs = default_btfs(size=8, pyramid="none")
-    scene = noh_scene(width=96, height=64, frames=3, btfs=btfs, cloth_rows=_ROWS, cloth_cols=_COLS, flame_size=(16, 8))
-    cloth = garment_rig(_ROWS, _COLS)
-    motion = BodyMotion(turn=0.6, turn_period=1.0, sway=0.1, sway_period=0.8, ramp=0.05, axis_z=-0.16)
-    rig = prepare_motion(scene, cloth, motion, key=jax.random.key(0), shadow_resolution=64, frame_dt=0.1)
-    return scene, cloth, rig
+    # the built-in dance in 1.5 s: it moves from the first frames on
+    scene = noh_scene(width=96, height=64, frames=3, btfs=default_btfs(size=8, pyramid="none"), robe=_ROBE,
+                      flame_size=(16, 8), motion=noh_dance(duration=1.5), duration=0.6)
+    rig = prepare_rig(scene, key=jax.random.key(0), shadow_resolution=64, frame_dt=0.1)
+    return scene, rig
 
 
-def test_frames_follow_the_moving_garment(setup):
-    scene, cloth, rig = setup
-    state = cloth.state
+def test_frames_follow_the_moving_performer(setup):
+    scene, rig = setup
+    performer = scene.performer
+    state = performer.costume.state
     images, masks = [], []
     for i in range(3):
-        image, new_state, counts = moving_frame_jit(scene, rig, state, scene.flames[:, i], jax.random.key(i))
-        assert int(counts.garment) <= rig.capacity and int(counts.reflection) <= rig.reflection_capacity
-        # the cloth continued from the previous frame's state by one frame's steps of the dance
-        expected = advance_cloth(cloth, state, rig.motion, steps=rig.steps)
-        np.testing.assert_allclose(new_state.x, expected.x, atol=1e-6)
+        image, new_state, counts = noh_frame_jit(scene, rig, state, scene.flames[:, i], jax.random.key(i))
+        assert int(counts.performer) <= rig.capacity and int(counts.reflection) <= rig.reflection_capacity
+        expected = advance_costume(performer.costume, state, performer.motion, steps=rig.steps)
+        np.testing.assert_allclose(np.asarray(new_state.x), np.asarray(expected.x), atol=1e-9)
         state = new_state
         images.append(np.asarray(image))
-        masks.append(np.asarray(counts.garment_mask))
+        masks.append(np.asarray(counts.performer_mask))
     assert all(np.all(np.isfinite(im)) and np.all(im >= 0) for im in images)
-    # the garment moved on screen (its pixels changed), and with it the shading
-    assert np.sum(masks[0] != masks[2]) > 20
-    assert np.abs(images[2] - images[0])[masks[0] & masks[2]].mean() > 0
+    assert masks[0].sum() > 50                                   # the performer is in the picture
+    assert np.sum(masks[0] != masks[2]) > 5                       # ... and moved
+    assert np.abs(images[2] - images[0]).mean() > 0
 
 
 def test_floor_reflection_adds_the_mirrored_scene_within_fresnel(setup):
-    """Against the same frame with a matte floor (no coat): the stage in front of the garment gets
-    the reflection, never more than F x the brightest radiance it could reflect, while the diffuse
-    part loses F."""
-    scene, cloth, rig = setup
-    matte = dataclasses.replace(rig, floor_coat=jnp.zeros_like(rig.floor_coat))
+    """Against the same frame with a matte floor: the polished floor gets the reflection, never
+    more than F x the brightest radiance it could reflect, while its diffuse part loses F."""
+    scene, rig = setup
+    matte = dataclasses.replace(rig, stage=dataclasses.replace(rig.stage, coat=jnp.zeros_like(rig.stage.coat)))
+    state = scene.performer.costume.state
     args = (scene.flames[:, 0], jax.random.key(5))
-    shiny, _, counts = moving_frame_jit(scene, rig, cloth.state, *args)
-    dull, _, _ = moving_frame_jit(scene, matte, cloth.state, *args)
+    shiny, _, counts = noh_frame_jit(scene, rig, state, *args)
+    dull, _, _ = noh_frame_jit(scene, matte, state, *args)
     shiny, dull = np.asarray(shiny), np.asarray(dull)
-    stage = np.asarray(rig.floor_coat) > 0
-    floor = stage & ~np.asarray(counts.garment_mask)
-    assert int(counts.reflection) > 0                                  # the garment is mirrored in the stage
+    polished = np.asarray(rig.stage.coat) > 0
+    floor = polished & ~np.asarray(counts.performer_mask)
+    assert floor.sum() > 100
     cos = np.clip(-np.asarray(rig.rays)[..., 1], 0, 1)
-    f = np.asarray(fresnel_schlick(jnp.asarray(cos), STAGE_F0))[..., None] * stage[..., None]
-    # shiny = dull (1 - F) + reflection, reflection in [0, F max(scene radiance)]
+    f = np.asarray(fresnel_schlick(jnp.asarray(cos), STAGE_F0))[..., None] * polished[..., None]
     reflection = shiny - dull * (1 - f)
     brightest = max(float(np.max(dull)), float(np.max(np.asarray(scene.flames[:, 0]))),
-                    float(np.max(np.asarray(rig.mirrored_sky))))
-    assert np.all(reflection[floor] >= -1e-5)
+                    float(np.max(np.asarray(rig.mirror.env))), float(np.max(np.asarray(rig.mirrored_sky))))
+    assert np.all(reflection[floor] >= -1e-6)
     assert np.all(reflection[floor] <= f[floor] * brightest * (1 + 1e-5))
     assert np.mean(reflection[floor]) > 0
-    off = ~stage & ~np.asarray(counts.garment_mask)
-    np.testing.assert_allclose(shiny[off], dull[off], atol=1e-6)      # the gravel and the sky do not reflect
-
-
-def test_half_resolution_floor_firelight_matches_full_resolution(setup):
-    """The floor's firelight from its irradiance on 2 x 2 blocks (PCSS there), read back
-    bilinearly and times rho_d per pixel (`floor_firelight`), against the general path at every
-    floor pixel: PCSS at the pixel and the floor's BRDF (`shade_floor`) under the same samples.
-    The same light up to the blur of one block at the shadows' soft edges."""
-    from jaxrender.app.scenes.noh.frame import fire_light
-    from jaxrender.app.scenes.noh.motion import floor_firelight
-    from jaxrender.app.scenes.noh.prepare import fire_visibility
-    from jaxrender.app.scenes.noh.shading import shade_floor
-    from jaxrender.fabric import depth_map, raster_window, spot_pinhole
-    from jaxrender.lights import sample_quad_lights
-    from jaxrender.shadows import ShadowMap
-
-    scene, cloth, rig = setup
-    x = cloth.state.x
-    maps = []
-    for q in range(rig.light_position.shape[0]):
-        sp = spot_pinhole(rig.light_position[q], rig.light_rotation[q], rig.tan_cutoff, rig.shadow_resolution)
-        maps.append(ShadowMap(depth=depth_map(sp, x, cloth.triangles, window=raster_window(sp, x, cloth.triangles)),
-                              position=sp.origin, rotation=sp.rotation, tan_cutoff=jnp.asarray(rig.tan_cutoff)))
-    samples = sample_quad_lights(scene.fires, jax.random.key(3), 16)
-    full_vis = fire_visibility(maps, rig.floor.position, rig.near)
-    assert np.any(np.asarray(full_vis) < 0.5)                    # the garment does shadow the floor
-    ref = np.asarray(shade_floor(rig.floor, fire_light(samples, rig.floor.position, full_vis, len(maps))))
-    got = np.asarray(floor_firelight(rig, samples, fire_visibility(maps, rig.shadow_points, rig.near)))
-    err = np.abs(got - ref).sum(-1) / np.mean(ref.sum(-1))      # relative to the floor's mean firelight
-    print("floor firelight error: mean", err.mean(), "p99", np.percentile(err, 99), "max", err.max())
-    assert ref.max() > 0
-    assert np.mean(err) < 0.02                                   # block-sized blur at the soft edges only
-    assert np.mean(err > 0.25) < 0.01
+    off = ~polished & ~np.asarray(counts.performer_mask)
+    np.testing.assert_allclose(shiny[off], dull[off], atol=1e-6)   # the gravel, walls and sky do not reflect
 
 
 def test_split_depth_maps_equal_one_pass(setup):
-    """The fires' depth maps rasterized in two windows (most triangles in a small one, the few
-    large ones compacted into a large one, `_fire_depth_maps`) against one `depth_map` pass with a
-    window covering every triangle, on a pose where some triangles are large: the same map."""
-    from jaxrender.app.scenes.noh.motion import _fire_depth_maps
-    from jaxrender.fabric import depth_map, raster_window, spot_pinhole
-
-    scene, cloth, rig = setup
-    # stretch the garment toward fire 0 so that a few triangles outgrow the small window
-    x = np.asarray(cloth.state.x).copy()
-    x[: _COLS * 2] += 0.5 * (np.asarray(rig.light_position[0]) - x[: _COLS * 2])
-    x = jnp.asarray(x)
-    small = dataclasses.replace(rig, shadow_window=4, large_window=64, large_capacity=128)
-    maps, largest, most = _fire_depth_maps(small, x, cloth.triangles)
-    assert int(most) > 0 and int(most) <= small.large_capacity and float(largest) <= small.large_window
-    for q, sm in enumerate(maps):
+    """Most triangles in a small window, the large ones compacted into a large one, combined by
+    their minimum, against one `depth_map` pass whose window covers every triangle."""
+    scene, rig = setup
+    mesh = _mesh(scene.performer, scene.performer.costume.state)
+    small = dataclasses.replace(rig, shadow_window=4, large_window=64, large_capacity=mesh.triangles.shape[0])
+    maps, largest, most = _depth_maps(small, mesh.vertices, mesh.triangles)
+    assert 0 < int(most) <= small.large_capacity and float(largest) <= small.large_window
+    for q in range(rig.light_position.shape[0]):
         sp = spot_pinhole(rig.light_position[q], rig.light_rotation[q], rig.tan_cutoff, rig.shadow_resolution)
-        ref = np.asarray(depth_map(sp, x, cloth.triangles, window=raster_window(sp, x, cloth.triangles)))
-        got = np.asarray(sm.depth)
-        assert np.isfinite(ref).sum() > 50
+        ref = np.asarray(_depth_map(sp, mesh.vertices, mesh.triangles,
+                                    window=raster_window(sp, mesh.vertices, mesh.triangles)))
+        got = np.asarray(maps.depth[q])
+        assert np.isfinite(ref).sum() > 20
         np.testing.assert_array_equal(np.isfinite(got), np.isfinite(ref))
         fin = np.isfinite(ref)
-        np.testing.assert_allclose(got[fin], ref[fin], rtol=1e-6)   # the same triangle's exact ray hit
+        np.testing.assert_allclose(got[fin], ref[fin], rtol=1e-6)
 
 
-def test_garment_boxes_give_the_full_image_frame(setup):
-    """The G-buffers rasterized in the boxes around the garment and its mirror image against the
-    same frame rasterized over the whole image: the same picture; a box the garment leaves is
-    widened by `grown`."""
-    from jaxrender.app.scenes.noh.motion import grown
+def test_boxed_split_g_buffer_equals_one_full_image_pass(setup):
+    """The performer's G-buffer as a frame makes it (in the box around its path, most triangles in a
+    small window and the large ones in a large one, merged by distance) against one `rasterize`
+    over the whole image with a window covering every triangle: the same pixels."""
+    scene, rig = setup
+    mesh = _mesh(scene.performer, scene.performer.costume.state)
+    x0, y0, bw, bh = rig.view_box
+    assert (bw, bh) != (rig.pinhole.width, rig.pinhole.height)          # the box does crop at this size
+    got, largest, n_large = _split(_cropped(rig.pinhole, rig.view_box), mesh.vertices, mesh.triangles, mesh.uv,
+                                   window=4, large_window=64, large_capacity=mesh.triangles.shape[0])
+    assert int(n_large) > 0 and float(largest) <= 64
+    ref = _rasterize(rig.pinhole, mesh.vertices, mesh.triangles, mesh.uv,
+                     window=raster_window(rig.pinhole, mesh.vertices, mesh.triangles))
+    crop = (slice(y0, y0 + bh), slice(x0, x0 + bw))
+    assert float(np.asarray(ref.hit).sum()) == float(np.asarray(got.hit).sum()) > 50   # all of it inside the box
+    np.testing.assert_array_equal(np.asarray(got.hit), np.asarray(ref.hit)[crop])
+    hit = np.asarray(got.hit) > 0
+    np.testing.assert_array_equal(np.asarray(got.triangle)[hit], np.asarray(ref.triangle)[crop][hit])
+    np.testing.assert_allclose(np.asarray(got.position)[hit], np.asarray(ref.position)[crop][hit], atol=1e-9)
 
-    scene, cloth, rig = setup
-    w, h = rig.pinhole.width, rig.pinhole.height
-    assert rig.view_box != (0, 0, w, h)                                # the boxes do crop at this size
-    full = dataclasses.replace(rig, view_box=(0, 0, w, h), mirror_box=(0, 0, w, h))
-    args = (cloth.state, scene.flames[:, 0], jax.random.key(2))
-    boxed, _, counts = moving_frame_jit(scene, rig, *args)
-    whole, _, _ = moving_frame_jit(scene, full, *args)
-    np.testing.assert_allclose(np.asarray(boxed), np.asarray(whole), rtol=1e-5, atol=1e-6)
-    same = grown(rig, counts) or rig                                   # (other buffers may grow)
-    assert (same.view_box, same.mirror_box) == (rig.view_box, rig.mirror_box)
-    tight = dataclasses.replace(rig, view_box=(w // 2, h // 2, 2, 2))
-    wider = grown(tight, counts)
-    x0, y0, bw, bh = wider.view_box
-    b = np.asarray(counts.bounds)[:4]
-    assert x0 <= max(b[0], 0) and y0 <= max(b[1], 0) and x0 + bw >= min(b[2], w) and y0 + bh >= min(b[3], h)
+
+def test_stage_unit_fire_irradiance_matches_a_dense_quadrature(setup):
+    """Each fire's irradiance per unit radiance at the stage's pixels (8 points over the flame,
+    times the stage's shadow toward the flame's centre) against 64 x 64 points in float64, where
+    the fire is not hidden."""
+    scene, rig = setup
+    st = rig.stage
+    pos = np.asarray(rig.pinhole.origin)[None] + np.asarray(st.t).reshape(-1)[np.asarray(st.index)][:, None] * \
+        np.asarray(rig.rays).reshape(-1, 3)[np.asarray(st.index)]
+    hits = _cast(scene.stage, jnp.broadcast_to(rig.pinhole.origin, (pos.shape[0], 3)),
+                      jnp.asarray(np.asarray(rig.rays).reshape(-1, 3)[np.asarray(st.index)]))
+    normal = np.asarray(hits.normal, np.float64)
+    fl = scene.fires
+    s = (np.arange(64) + 0.5) / 64 * 2 - 1
+    ss, tt = np.meshgrid(s, s)
+    checked = 0
+    for q in range(fl.center.shape[0]):
+        y = np.asarray(fl.center[q]) + ss.reshape(-1, 1) * np.asarray(fl.u[q]) + tt.reshape(-1, 1) * np.asarray(fl.v[q])
+        d = y[None] - pos[:, None]
+        r2 = np.sum(d * d, -1)
+        cos = np.maximum(np.einsum("nmk,nk->nm", d, normal), 0) / np.sqrt(r2)
+        ref = np.sum(cos / r2, -1) * (FLAME_SIZE[0] * FLAME_SIZE[1] / 64 ** 2)
+        got = np.asarray(st.fire_unit[:, q], np.float64)
+        far = np.min(np.sqrt(r2), -1) > 1.0
+        lit = far & (got > 0.5 * ref) & (ref > 1e-4)
+        checked += lit.sum()
+        np.testing.assert_allclose(got[lit], ref[lit], rtol=UNIT_RTOL)
+        assert np.all(got[far] <= ref[far] * (1 + UNIT_RTOL) + 1e-9)   # shadows only take light away
+    assert checked > 1000
+
+
+def test_half_resolution_stage_shadows_match_pcss_at_every_pixel(setup):
+    scene, rig = setup
+    mesh = _mesh(scene.performer, scene.performer.costume.state)
+    maps, _, _ = _depth_maps(rig, mesh.vertices, mesh.triangles)
+    _, half = _shadows(rig, maps, mesh.vertices[:4])
+    st = rig.stage
+    pos = np.asarray(rig.pinhole.origin)[None] + np.asarray(st.t).reshape(-1)[np.asarray(st.index)][:, None] * \
+        np.asarray(rig.rays).reshape(-1, 3)[np.asarray(st.index)]
+    full = jax.jit(jax.vmap(lambda sm, p: pcss(sm, p, light_size=float(FLAME_SIZE[0]), near=rig.near, bias=0.02),
+                            in_axes=(0, None)))(maps, jnp.asarray(pos))
+    full, half = np.asarray(full), np.asarray(half)
+    assert np.any(full < 0.5)                                     # the performer does shadow the stage
+    err = np.abs(half - full)
+    print("stage shadow error: mean", err.mean(), "p99", np.percentile(err, 99))
+    assert err.mean() < SHADOW_MEAN_TOL and np.mean(err > 0.5) < 0.01

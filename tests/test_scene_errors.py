@@ -104,3 +104,30 @@ def test_cli_renders_png_and_times(tmp_path, capsys):
     assert re.fullmatch(r"compile_s=[0-9.]+ median_frame_s=[0-9.]+", line), line
     img = read_image(out)
     assert img.shape == (7, 10, 3) and img.max() > 0.005  # the lit sphere top (dim: most of the map is dark)
+
+
+def test_every_problem_of_a_scene_is_reported_at_once(tmp_path):
+    scene = _edit(lambda s: (s["camera"].update(fov_y_deg=-3), s["medium"].update(density=2.0),
+                             s["spotlights"][0].pop("intensity"), s["objects"][0].update(radius="big")))
+    with pytest.raises(InputError) as info:
+        shafts_scene_from_dict(scene, source="x.json", base_dir=_write(tmp_path, _SCENE).parent)
+    lines = str(info.value).splitlines()
+    assert lines == ["x.json: camera.fov_y_deg: must be > 0, got -3",
+                     "x.json: medium.density: unknown field (expected one of: rho, kappa, K)",
+                     "x.json: spotlights[0].intensity: missing field",
+                     "x.json: objects[0].radius: expected a number, got 'big'"]
+
+
+@pytest.mark.parametrize("size", [(10**6, 10**6), (16385, 4), (8192, 8192)])
+def test_sizes_beyond_the_renderers_indices_are_refused_up_front(tmp_path, capsys, size):
+    """width x height (or W x H x spp) past int32-safe indexing: one line, exit 2, before any compile."""
+    path = _write(tmp_path, _SCENE)
+    out = tmp_path / "out.png"
+    code = main(["shafts", str(path), "--out", str(out), "--width", str(size[0]), "--height", str(size[1]),
+                 "--spp", "4"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "beyond what the renderer indexes" in err, err
+    assert not out.exists()
+    scene = _edit(lambda s: (s["camera"].update(width=size[0], height=size[1]), s["render"].update(spp=4)))
+    with pytest.raises(InputError):
+        shafts_scene_from_dict(scene, source="x.json", base_dir=tmp_path)

@@ -160,15 +160,15 @@ def test_killed_ingest_resumes_to_the_same_store(root, capture, store32):
 
 KILL_FIT = """
 import os, signal, sys
-import fitting.fit as fit
+from fitting.checkpoint import Checkpoint
 from fitting import fit_store
-save, saved = fit._save_chunk, []
-def save_then_die(path, result):
-    save(path, result)
-    saved.append(path)
+save, saved = Checkpoint.save, []
+def save_then_die(self, index, fit):
+    save(self, index, fit)
+    saved.append(index)
     if len(saved) == 3:
         os.kill(os.getpid(), signal.SIGKILL)
-fit._save_chunk = save_then_die
+Checkpoint.save = save_then_die
 fit_store(sys.argv[1], sys.argv[2], chunk={chunk}, pyramid=False, progress=False)
 """
 

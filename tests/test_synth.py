@@ -199,8 +199,7 @@ def test_cli_synth_bad_input_exit_2_and_no_output(tmp_path, capsys, monkeypatch)
         return write_png(path, image, **kwargs)
 
     monkeypatch.setattr(fitting.synth, "write_png", failing_png)
-    with pytest.raises(OSError):
-        fitting_main(["synth", str(tmp_path / "half"), *args])
+    assert fitting_main(["synth", str(tmp_path / "half"), *args]) == 3  # a machine fault: one line, exit 3
     assert len(calls) > 8 and list(tmp_path.iterdir()) == [occupied]
 
 

@@ -145,7 +145,7 @@ def test_jaxrender_desert_small(tmp_path):
 
 
 def test_jaxrender_noh_small(tmp_path):
-    """Two 64 x 48 frames of the Noh scene: PNG + linear EXR per frame and the GIF; the frames are
+    """Two 64 x 48 frames of the Noh scene: PNG + linear EXR per frame, the GIF and the MP4; the frames are
     pictures, and they differ (the fires flicker) but show the same scene."""
     out = tmp_path / "noh"
     proc = run("jaxrender", "noh", "--out", out, "--frames", "2", "--width", "64", "--height", "48")
@@ -162,6 +162,7 @@ def test_jaxrender_noh_small(tmp_path):
     assert 1e-4 < change < 0.5, change  # flicker, not a different scene (or a frozen one)
     gif = skio.imread(out / "noh.gif")
     assert gif.shape[0] == 2 and gif.shape[1:3] == (48, 64)
+    assert (out / "noh.mp4").read_bytes()[4:8] == b"ftyp"      # an MP4 (ISO media) file beside them
 
 
 # --- fitting synth / fit / pyramid / relight / report ------------------------------------------------------------

@@ -7,9 +7,10 @@ BTF_DIR/level_01.exr   ceil(H/2) x ceil(W/2): every lobe channel
 BTF_DIR/btf.json       {"format": "jaxrender-btf", "version": 1, "model": ..., "levels": [...], "units": ...}
 ```
 
-Readers must treat a directory without `btf.json` as incomplete. Writers remove `btf.json` before
-they touch any level and write it again only once every level is in place; each file is itself
-written atomically (temporary sibling, then rename).
+Readers must treat a directory without `btf.json` as incomplete, and `read_btf` refuses one (naming
+the writer when one holds the directory's lock) and one whose listed level files are not all there.
+Writers remove `btf.json` before they touch any level and write it again only once every level is
+in place; each file is itself written atomically (temporary sibling, then rename).
 """
 
 from __future__ import annotations
@@ -24,8 +25,10 @@ import numpy as np
 from ..errors import InputError
 from ._atomic import atomic_path
 from ._images import read_exr, write_exr, write_png
+from ._lock import describe_owner, lock_owner
 
-__all__ = ["BTF_FORMAT", "BTF_VERSION", "BTF_MODELS", "LOBE_CHANNELS", "LEVEL0_CHANNELS", "BTF_UNITS",
+__all__ = ["BTF_FORMAT", "BTF_VERSION", "BTF_MODELS", "LOBE_CHANNELS", "LEVEL_CHANNELS", "LEVEL0_CHANNELS",
+           "MASK_CHANNEL", "BTF_UNITS",
            "btf_level_name", "complete_level", "write_btf", "write_btf_levels", "read_btf", "write_btf_previews"]
 
 BTF_FORMAT = "jaxrender-btf"
@@ -44,8 +47,13 @@ LOBE1_CHANNELS: tuple[str, ...] = (
 LOBE_CHANNELS: tuple[str, ...] = LOBE0_CHANNELS + LOBE1_CHANNELS
 #: Per-texel fit statistics, on level 0 only.
 STAT_CHANNELS: tuple[str, ...] = ("residual", "converged", "n_valid", "n_saturated", "n_dark")
+#: 1 where a texel was fitted (a coarse texel: any of its children), 0 outside the capture's mask;
+#: every level (an extension of design.md's format; BTFs written before it read as all 1).
+MASK_CHANNEL = "mask"
+#: Channels of every level.
+LEVEL_CHANNELS: tuple[str, ...] = LOBE_CHANNELS + (MASK_CHANNEL,)
 #: Channels of level 0.
-LEVEL0_CHANNELS: tuple[str, ...] = LOBE_CHANNELS + STAT_CHANNELS
+LEVEL0_CHANNELS: tuple[str, ...] = LEVEL_CHANNELS + STAT_CHANNELS
 
 BTF_UNITS = {
     "rho_d": "reflectance (unitless, linear RGB)",
@@ -76,7 +84,7 @@ def complete_level(channels: dict, *, level0: bool) -> dict[str, np.ndarray]:
     missing = [name for name in required if name not in arrays]
     if missing:
         raise ValueError(f"BTF level is missing channels {missing}")
-    allowed = set(LEVEL0_CHANNELS if level0 else LOBE_CHANNELS)
+    allowed = set(LEVEL0_CHANNELS if level0 else LEVEL_CHANNELS)
     unknown = sorted(set(arrays) - allowed)
     if unknown:
         raise ValueError(f"unknown BTF channels {unknown} (design.md names only)")
@@ -95,7 +103,8 @@ def complete_level(channels: dict, *, level0: bool) -> dict[str, np.ndarray]:
         arrays.setdefault("weight", np.zeros(next(iter(shapes)), np.float32))
     elif "weight" not in arrays:
         raise ValueError("a level with lobe-1 channels needs `weight`")
-    order = LEVEL0_CHANNELS if level0 else LOBE_CHANNELS
+    arrays.setdefault(MASK_CHANNEL, np.ones(next(iter(shapes)), np.float32))
+    order = LEVEL0_CHANNELS if level0 else LEVEL_CHANNELS
     return {name: np.ascontiguousarray(arrays[name]) for name in order}
 
 
@@ -112,7 +121,7 @@ def _manifest(model: str, sizes: list[tuple[int, int]], meta: dict | None) -> di
     manifest = {
         "format": BTF_FORMAT, "version": BTF_VERSION, "model": model,
         "levels": [{"file": btf_level_name(i), "size": [int(h), int(w)]} for i, (h, w) in enumerate(sizes)],
-        "channels": {"all_levels": list(LOBE_CHANNELS), "level_0": list(STAT_CHANNELS)},
+        "channels": {"all_levels": list(LEVEL_CHANNELS), "level_0": list(STAT_CHANNELS)},
         "units": BTF_UNITS,
     }
     for key, value in (meta or {}).items():
@@ -212,7 +221,9 @@ def read_btf(btf_dir: str | os.PathLike, *, load: bool = True) -> tuple[dict, li
     if not btf_dir.is_dir():
         raise InputError(btf_dir, "no such BTF directory")
     if not path.is_file():
-        raise InputError(path, "missing: the BTF directory is incomplete (btf.json is written last)")
+        owner = lock_owner(btf_dir)
+        writing = f"; {describe_owner(owner)} is writing it" if owner else ""
+        raise InputError(path, f"missing: the BTF directory is incomplete (btf.json is written last){writing}")
     try:
         manifest = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
@@ -228,19 +239,23 @@ def read_btf(btf_dir: str | os.PathLike, *, load: bool = True) -> tuple[dict, li
             or not all(isinstance(e, dict) and isinstance(e.get("file"), str) and isinstance(e.get("size"), list)
                        and len(e["size"]) == 2 for e in entries)):
         raise InputError(path, "`levels` must be a non-empty list of {file, size: [H, W]}")
+    absent = [entry["file"] for entry in entries if not (btf_dir / entry["file"]).is_file()]
+    if absent:
+        raise InputError(path, f"lists level files that are not there ({', '.join(absent)}): the BTF is incomplete")
     if not load:
         return manifest, []
     levels = []
     for i, entry in enumerate(entries):
         level_path = btf_dir / entry["file"]
         channels = read_exr(level_path)
-        required = LEVEL0_CHANNELS if i == 0 else LOBE_CHANNELS
-        missing = [name for name in required if name not in channels]
+        required = LEVEL0_CHANNELS if i == 0 else LEVEL_CHANNELS
+        missing = [name for name in required if name not in channels and name != MASK_CHANNEL]
         if missing:
             raise InputError(level_path, f"missing channels {', '.join(missing)}")
         shape = channels[required[0]].shape
         if list(shape) != [int(s) for s in entry["size"]]:
             raise InputError(level_path, f"size {list(shape)} differs from btf.json's {entry['size']}")
+        channels.setdefault(MASK_CHANNEL, np.ones(shape, np.float32))  # written before masks existed: all in
         levels.append({name: channels[name] for name in required})
     return manifest, levels
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import warnings
 from pathlib import Path
@@ -54,9 +55,27 @@ def write_exr(path: str | os.PathLike, image: np.ndarray | dict[str, np.ndarray]
         raise ValueError(f"EXR channels must share one 2-D shape, got {shapes}")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with atomic_path(path) as tmp:
-        with OpenEXR.File(header, channels) as exr:
-            exr.write(str(tmp))
+        try:
+            with OpenEXR.File(header, channels) as exr:
+                exr.write(str(tmp))
+        except RuntimeError as error:   # OpenEXR reports a failed write (a full disk, say) as a bare RuntimeError
+            mapped = _os_error(error, path)
+            if mapped is error:
+                raise
+            raise mapped from error
     return Path(path)
+
+
+_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO, errno.EFBIG)
+
+
+def _os_error(error: Exception, path) -> Exception:
+    """The OSError a library's message describes (by the C library's text of its errno), else `error`."""
+    text = str(error)
+    for number in _WRITE_ERRNOS:
+        if os.strerror(number) in text:
+            return OSError(number, os.strerror(number), os.fspath(path))
+    return error
 
 
 def read_image(path: str | os.PathLike, *, srgb: bool = True) -> np.ndarray:

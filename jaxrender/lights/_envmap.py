@@ -1,32 +1,6 @@
-"""Lat-long HDR environment maps in Mitsuba 3's `envmap` orientation, importance sampled.
-
-Orientation (verified against Mitsuba 3 `envmap` in tests/test_envmap.py): the world's up axis is
-+y; a direction d maps to
-
-    u = atan2(d.x, -d.z) / (2 pi)  (wrapped into [0, 1)),   v = acos(d.y) / pi,
-
-so u = 0 looks along -z, u = 1/4 along +x, v = 0 is the zenith (+y) and v = 1 the nadir; u runs
-along the image's columns and v along its rows (row 0 at the top). Inversely, with theta = pi v,
-phi = 2 pi u: d = (sin theta sin phi, cos theta, -sin theta cos phi). A map therefore moves
-between this toolkit and a Mitsuba `envmap` emitter (default `to_world`) unchanged.
-
-Lighting model: the map is piecewise constant over its texels, texel (j, i) covering
-u in [i/W, (i+1)/W), v in [j/H, (j+1)/H). Its solid angle is
-dOmega_j = (2 pi / W) (cos(pi j/H) - cos(pi (j+1)/H)) = (4 pi / W) sin(pi/2H) sin(theta_j)
-with theta_j the texel's centre, so choosing a texel with probability proportional to
-luminance x sin(theta) (paper 004, after Nishiwaki et al.) and then a direction uniformly in
-solid angle inside it gives the solid-angle pdf
-
-    pdf(d) = lum(texel(d)) / sum_texels lum * dOmega,
-
-which integrates to exactly 1 and makes sum_k L(d_k) g(d_k) / pdf(d_k) / K an unbiased estimator
-of the integral of L g over the sphere (L the piecewise-constant radiance `env_radiance`). A map
-with zero luminance everywhere falls back to uniform sampling over the sphere.
-
-`env_radiance(..., filter="mitsuba")` reproduces Mitsuba's own bilinear reconstruction (columns
-centred at (i + 1/2)/W and wrapping around, rows at v = j/(H - 1)) for displaying the map as a
-background; lighting uses the piecewise-constant `filter="nearest"` so that sampled radiance and
-pdf agree exactly.
+"""Lat-long HDR environment maps in Mitsuba 3's `envmap` orientation (checked against Mitsuba),
+importance sampled by luminance x sin(theta) with an exact solid-angle pdf. The orientation, the
+pdf and the two reconstruction filters: docs/rendering.md.
 """
 
 from __future__ import annotations

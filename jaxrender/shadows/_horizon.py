@@ -1,24 +1,7 @@
 """Horizon maps (Max 1988; paper 001 section 3.5): per texel of a periodic heightfield, the largest
-slope toward any other texel along each of D directions, and the shadow test that interpolates
-the slope toward the light between the two neighbouring directions.
-
-Direction d has azimuth phi_d = 2 pi d / D in texture space (x along columns, y along rows). The
-path from texel P steps by e_d = (cos phi_d, sin phi_d) / max(|cos|, |sin|), i.e. it crosses one
-grid line per step, and follows the periodic wrap (note 2 of the paper): P + e, P + 2e, ...,
-P + (S - 1)e with S = the field's size. With D = 4 or 8 every sample lies on the lattice, so the
-8-direction map visits (x+1, y), (x+2, y), ..., (x-1, y) exactly as note 2; other D sample the
-field bilinearly (periodic). The horizon slope is
-
-    max(0, max_k (h(P + k e) - h(P)) / (k |e| texel_size)),
-
-clamped at 0: the tangent plane is the lowest horizon (a light below it is dark by Lambert anyway).
-
-The search is exact. With D = 4 or 8 it is dense and gather-free: each step k is one periodic
-whole-field shift, fused by XLA. Other D skip work: a band of farther samples is searched only where
-the band's maximum height could beat the slope found so far (see `horizon_map`). For D = 4 or 8 on
-a square field there is also the O(S^2 D) convex-hull sweep (`_horizon_sweep.py`, Timonen &
-Westerholm 2010), equal to the search; `horizon_map` uses it from `SWEEP_MIN_SIZE` texels on,
-where it is the faster of the two on CPU (benchmarks/desert_shadows.py).
+slope along each of D directions (an exact search, or the sweep of `_horizon_sweep.py` for large
+lattice maps), and the shadow test between the two nearest directions. Paths, sampling and which
+method runs when: docs/desert.md.
 """
 
 from __future__ import annotations

@@ -1,27 +1,6 @@
-"""Horizon maps by an O(N x directions) sweep (Timonen & Westerholm 2010, "Scalable height field
-self-shadowing"): the exact horizon of the full search for the lattice directions (D = 4 or 8) of a
-square periodic heightfield, in O(1) amortised work per texel and direction instead of O(S).
-
-Each lattice direction splits the field into S lines (cycles of S texels along e). Along a line
-the horizon slope of texel t is the largest slope (h_j - h_t) / (|j - t| |e|) to the texels ahead
-of it; that maximum lies on the upper convex hull of the profile ahead, and the slope from t to
-the hull vertices rises then falls, so walking the hull from its nearest vertex until the slope
-stops rising finds it. Sweeping each line backward keeps that hull as a linked list (`nxt[j]`: the
-hull vertex after j); t's tangent vertex becomes `nxt[t]`, and the vertices walked past are below
-the segment from t to it, i.e. off every later hull (each texel is passed over at most once).
-
-The path is periodic (note 2 of paper 001): P + e, ..., P + (S - 1) e. Every line is rotated to
-end at its highest texel M and swept from there: a texel beyond M along the path (farther than M)
-is no higher than M, so its slope never exceeds the slope to M (or 0), and the sweep of the S
-texels of one turn, started with the hull {M}, is exact. All lines of all directions are swept
-together, one vectorised step per position (a loop of S steps over D * S lanes); the loop only
-finds each texel's tangent vertex (integers), and the slopes are computed from those afterwards,
-with the full search's formula, so they are equal to it and differentiable like it.
-
-Where the time goes (CPU): each step's walk is a while loop over all D S lanes that runs until
-the lane with the longest walk is done (a few rounds where the average walk is ~1), each round two
-gathers; then the gathers that lay the lines out and back (one texel index per sample, computed,
-fused into the gather). See benchmarks/RESULTS.md, horizon maps.
+"""Horizon maps by an O(N x directions) convex-hull sweep (Timonen & Westerholm 2010): the exact
+horizon of the full search for D = 4 or 8 on a square periodic field, every line of every
+direction swept together. Why it is exact and where its time goes: docs/desert.md.
 """
 
 from __future__ import annotations

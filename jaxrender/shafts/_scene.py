@@ -15,8 +15,8 @@ from ..shadows import ShadowMap, render_shadow_map
 class Medium(eqx.Module):
     """Homogeneous fog (paper 000): density `rho`, extinction coefficient `kappa`, phase scale `K`.
 
-    Extinction per unit length is rho*kappa; scattering per unit length per steradian is
-    rho*F(a) with F(a) = K (1 + 9 cos^16(a/2)). (The image depends on rho*kappa and rho*K only.)
+    Extinction per unit length is `rho*kappa`; scattering per unit length per steradian is
+    `rho*F(a)` with `F(a) = K (1 + 9 cos^16(a/2))`. (The image depends on `rho*kappa` and `rho*K` only.)
     """
 
     rho: Float[Array, ""]

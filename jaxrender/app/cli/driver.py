@@ -1,18 +1,83 @@
 """The one command-line driver shared by `jaxrender`, `fitting` and `sims`.
 
 Each subcommand lives in its own module exposing `configure(parser)` and `run(args) -> int`;
-it is imported only when asked for, so `jaxrender --help` answers without importing jax. Bad
-input raises `jaxrender.errors.InputError`, which becomes one line on stderr and exit code 2.
+it is imported only when asked for, so `jaxrender --help` answers without importing jax.
+
+Every failure becomes one line on stderr naming the file and the problem, with the exit code of
+its kind (`jaxrender.errors`: 2 bad input, 3 a fault of the machine, 4 the output busy, 1 a bug);
+`--debug` or `JAXRENDER_DEBUG=1` prints the traceback above it.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
+import logging
+import os
 import sys
+import traceback
 from collections.abc import Sequence
+from types import ModuleType
 
-from jaxrender.errors import InputError
+from jaxrender.errors import (
+    EXIT_BUSY,
+    EXIT_INPUT,
+    EXIT_INTERNAL,
+    EXIT_INTERRUPTED,
+    EXIT_MACHINE,
+    InputError,
+    OutputBusy,
+)
+
+DEBUG_ENV = "JAXRENDER_DEBUG"
+# an OSError with one of these names a path the user gave that is not there or not of the right kind
+_INPUT_ERRNOS = {errno.ENOENT, errno.ENOTDIR, errno.EISDIR, errno.EEXIST, errno.ENAMETOOLONG, errno.ELOOP}
+_OUTPUT_ARGUMENTS = ("out", "store", "out_dir")   # named when a failed write does not say which file
+
+
+def _output_of(args) -> str | None:
+    for name in _OUTPUT_ARGUMENTS:
+        value = getattr(args, name, None)
+        if value is not None:
+            return os.fspath(value)
+    return None
+
+
+def describe_failure(error: BaseException, output: str | None = None) -> tuple[int, str]:
+    """(exit code, message) of a failure: the file and the problem, one line (an `InputErrors`: one per problem)."""
+    if isinstance(error, InputError):
+        return EXIT_INPUT, str(error)
+    if isinstance(error, OutputBusy):
+        return EXIT_BUSY, str(error)
+    where = f"{output}: " if output else ""
+    if isinstance(error, MemoryError) or (type(error).__name__ in ("XlaRuntimeError", "JaxRuntimeError")
+                                          and "RESOURCE_EXHAUSTED" in str(error)):
+        return EXIT_MACHINE, f"{where}out of memory ({type(error).__name__}); free memory or lower --memory-gb/--chunk"
+    if isinstance(error, OSError):
+        # a failed write names no file (a full disk): name the command's output; an error without an
+        # errno (a Dask scheduler that does not answer) is not about the output
+        path = error.filename if error.filename is not None else (output if error.errno is not None else None)
+        problem = error.strerror or str(error) or type(error).__name__
+        if error.filename2 is not None:
+            problem += f" ({os.fspath(error.filename2)})"
+        text = f"{os.fspath(path)}: {problem}" if path is not None else problem
+        return (EXIT_INPUT if error.errno in _INPUT_ERRNOS else EXIT_MACHINE), text
+    first = (str(error).strip().splitlines() or [""])[0]
+    return EXIT_INTERNAL, (f"internal error: {type(error).__name__}: {first} (a bug: rerun with --debug or "
+                           f"{DEBUG_ENV}=1 for the traceback, and report it)")
+
+
+def command_parser(prog: str, name: str, commands: dict[str, tuple[str, str]]
+                   ) -> tuple[ModuleType, argparse.ArgumentParser]:
+    """The subcommand's module (imported now) and its configured parser (also read by the docs' CLI pages)."""
+    module_path, help_ = commands[name]
+    module = importlib.import_module(module_path)
+    parser = argparse.ArgumentParser(prog=f"{prog} {name}", description=help_)
+    module.configure(parser)
+    parser.add_argument("--debug", action="store_true",
+                        help=f"on failure, print the traceback above the one-line error (also: {DEBUG_ENV}=1)")
+    return module, parser
 
 
 def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
@@ -29,16 +94,20 @@ def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
         print(text)
         return 0 if argv else 2
     name = argv[0]
-    module_path, help_ = commands[name]
-    module = importlib.import_module(module_path)
-    parser = argparse.ArgumentParser(prog=f"{prog} {name}", description=help_)
-    module.configure(parser)
+    module, parser = command_parser(prog, name, commands)
     args = parser.parse_args(argv[1:])
     try:
         return int(module.run(args) or 0)
-    except InputError as error:
-        print(f"{prog} {name}: error: {error}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print(f"{prog} {name}: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+    except Exception as error:
+        if args.debug or os.environ.get(DEBUG_ENV, "") not in ("", "0"):
+            traceback.print_exc()
+        else:
+            # the line below is the whole report: background tasks a failed write left behind (zarr's
+            # chunk writes) must not add their own at exit
+            logging.getLogger("asyncio").disabled = True
+        code, text = describe_failure(error, _output_of(args))
+        print(f"{prog} {name}: error: {text}", file=sys.stderr)
+        return code

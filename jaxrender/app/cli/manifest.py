@@ -1,9 +1,12 @@
-"""`fitting manifest IMAGES.csv --out CAPTURE_DIR/capture.json`: a capture manifest from a CSV of
-images (columns image, kind, theta_deg, phi_deg, exposure_s; EXIF ExposureTime when empty)."""
+"""`fitting manifest IMAGES.csv|OBJECT_DIR --out CAPTURE_DIR/capture.json`: a capture manifest from a
+CSV of images (columns image, kind, a direction, optional intensity, exposure_s) or from a
+DiLiGenT-format photometric-stereo folder (images referred to in place)."""
 
 from __future__ import annotations
 
-from fitting.manifest import write_manifest
+from pathlib import Path
+
+from fitting.manifest import write_folder_manifest, write_manifest
 
 from .arguments import positive_float
 
@@ -18,7 +21,10 @@ def _float(value: str) -> float:
 
 
 def configure(parser):
-    parser.add_argument("csv", metavar="IMAGES.csv", help="one row per image: image,kind,theta_deg,phi_deg,exposure_s")
+    parser.add_argument("source", metavar="IMAGES.csv|OBJECT_DIR",
+                        help="a CSV (one row per image: image, kind, theta_deg, phi_deg or light_x, light_y, light_z, "
+                             "optional intensity or intensity_r/g/b, exposure_s) or a DiLiGenT-format folder "
+                             "(filenames.txt, light_directions.txt, light_intensities.txt, mask.png, 16-bit PNGs)")
     parser.add_argument("--out", required=True, metavar="CAPTURE_DIR/capture.json", help="manifest to write")
     parser.add_argument("--response", choices=("linear", "srgb"), default="linear",
                         help="how integer codes are linearised (default linear; camera JPEGs: srgb)")
@@ -30,7 +36,10 @@ def configure(parser):
 
 def run(args) -> int:
     refl = args.white_reflectance
-    out = write_manifest(args.csv, args.out, response=args.response,
-                         white_reflectance=refl[0] if len(refl) == 1 else list(refl), view=tuple(args.view))
+    if Path(args.source).is_dir():
+        out = write_folder_manifest(args.source, args.out)
+    else:
+        out = write_manifest(args.source, args.out, response=args.response,
+                             white_reflectance=refl[0] if len(refl) == 1 else list(refl), view=tuple(args.view))
     print(f"{out}: written")
     return 0

@@ -1,4 +1,5 @@
-"""`jaxrender noh`: woven fabric under a dusk sky and firelight (paper 004), frames + animated GIF."""
+"""`jaxrender noh`: Takigi Noh (paper 004), a costumed performer on a Noh stage between bonfires,
+driven by the built-in dance or a BVH motion; frames + animated GIF + MP4."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from jaxrender.io import InputError, atomic_path, read_btf, read_image
+from jaxrender.io import InputError, atomic_path, read_btf, read_bvh, read_image
 from jaxrender.lights import load_envmap
 
 from ..scenes.noh import LABELS, btf_levels_from_channels, render_noh, write_animation
@@ -18,32 +19,40 @@ from .timed import add_time_argument, print_timing
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", required=True, type=Path, help="output directory (frames PNG + EXR, noh.gif)")
-    parser.add_argument("--mask", type=Path, help="RGB label PNG over the garment's uv: gold (255,255,0) brocade, "
-                        "green (0,255,0) hexagon weave, cyan (0,255,255) satin, any other colour = plain weave in "
-                        "that colour (default: built in)")
+    parser.add_argument("--out", required=True, type=Path,
+                        help="output directory (frames PNG + EXR, noh.gif, noh.mp4)")
+    parser.add_argument("--motion", type=Path, help="BVH motion capture to dance (default: the built-in Noh "
+                        "motion: kamae, suriashi steps, a slow turn, the sleeve raised and lowered)")
+    parser.add_argument("--mask", type=Path, help="RGB label PNG over the robe's uv (docs/noh.md): gold (255,255,0) "
+                        "brocade, green (0,255,0) hexagon weave, cyan (0,255,255) satin, any other colour = plain "
+                        "weave in that colour (default: built in)")
     parser.add_argument("--btf", action="append", default=[], metavar="LABEL=BTF_DIR",
-                        help="BTF directory for a label (brocade, hexagon, satin, pattern); repeatable")
+                        help=f"BTF directory for a label ({', '.join(LABELS)}); repeatable")
     parser.add_argument("--env", type=Path, help="lat-long HDR environment (EXR, Mitsuba envmap orientation; "
                         "default: procedural dusk sky)")
     parser.add_argument("--env-scale", type=float, default=1.0, help="multiplier for --env radiance")
-    parser.add_argument("--frames", type=int, default=20, help="number of frames (default 20)")
+    parser.add_argument("--frames", type=int, default=60, help="number of frames (default 60: the built-in dance)")
+    parser.add_argument("--fps", type=float, default=10.0, help="frames per second of the sequence (default 10)")
     parser.add_argument("--width", type=int, default=720)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--seed", type=int, default=2024, help="random seed (fires, light samples)")
-    add_time_argument(parser, "render the frame")
+    parser.add_argument("--no-video", action="store_true", help="skip the MP4")
+    add_time_argument(parser, "render a frame (the dance going on)")
 
 
 def _load_inputs(args):
     """Validate and load every input before any output is written (InputError on bad input)."""
     if args.frames < 1:
         raise InputError(None, f"--frames must be >= 1, got {args.frames}")
+    if not args.fps > 0:
+        raise InputError(None, f"--fps must be > 0, got {args.fps}")
     if args.width < 16 or args.height < 16:
         raise InputError(None, f"--width/--height must be >= 16, got {args.width}x{args.height}")
     if args.time < 0:
         raise InputError(None, f"--time must be >= 0, got {args.time}")
     if args.out.exists() and not args.out.is_dir():
         raise InputError(args.out, "exists and is not a directory")
+    motion = read_bvh(args.motion) if args.motion is not None else None
     mask = None
     if args.mask is not None:
         if args.mask.suffix.lower() != ".png":
@@ -62,22 +71,23 @@ def _load_inputs(args):
         _, levels = read_btf(path)
         btfs[label] = btf_levels_from_channels(levels)
     env = load_envmap(args.env, scale=args.env_scale) if args.env is not None else None
-    return mask, (btfs or None), env
+    return motion, mask, (btfs or None), env
 
 
 def run(args) -> int:
-    mask, btfs, env = _load_inputs(args)
+    motion, mask, btfs, env = _load_inputs(args)
     info: dict = {}
     with tqdm(total=args.frames, desc="noh frames", disable=None) as bar:
         frames = render_noh(frames=args.frames, width=args.width, height=args.height, key=jax.random.key(args.seed),
-                            mask_rgb=mask, btfs=btfs, env=env, progress=bar.update, info=info,
-                            time_repeats=args.time)
+                            mask_rgb=mask, btfs=btfs, env=env, motion=motion, motion_source=args.motion,
+                            frame_dt=1.0 / args.fps, progress=bar.update, info=info, time_repeats=args.time)
     with atomic_path(args.out, directory=True) as tmp:
         if args.out.is_dir():  # keep an existing directory's other files: write into a copy
             shutil.copytree(args.out, tmp, dirs_exist_ok=True)
-        write_animation(tmp, frames, exposure=info["exposure"])
+        write_animation(tmp, frames, exposure=info["exposure"], fps=args.fps, video=not args.no_video)
     if args.time > 0:
+        print(f"prepare_s={info['prepare_s']:.4f} recompiles={info['recompiles']}")
         print_timing(info["compile_s"], info["timed_s"])
     else:
-        print(f"wrote {args.frames} frames and noh.gif to {args.out}")
+        print(f"wrote {args.frames} frames, noh.gif{'' if args.no_video else ' and noh.mp4'} to {args.out}")
     return 0

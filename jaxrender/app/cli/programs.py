@@ -14,7 +14,7 @@ JAXRENDER_COMMANDS = {
     "gallery": ("jaxrender.app.cli.gallery", "render the showcase scenes and a fit into an HTML gallery"),
     "shafts": ("jaxrender.app.cli.shafts", "render light shafts from a scene file (paper 000)"),
     "desert": ("jaxrender.app.cli.desert", "render a desert of dunes and wind ripples (paper 001)"),
-    "noh": ("jaxrender.app.cli.noh", "render woven fabric under environment light and firelight (paper 004)"),
+    "noh": ("jaxrender.app.cli.noh", "Takigi Noh: a costumed performer on a Noh stage between bonfires (paper 004)"),
 }
 FITTING_COMMANDS = {
     "synth": ("jaxrender.app.cli.synth", "write a synthetic multi-light HDR capture with known parameter maps"),
@@ -31,18 +31,26 @@ SIMS_COMMANDS = {
 }
 
 
+JAXRENDER_DESCRIPTION = "`jaxrender` command line: a thin layer over the public API."
+FITTING_DESCRIPTION = "`fitting` command line: BTF capture synthesis, fitting, pyramid, relighting and reports."
+SIMS_DESCRIPTION = "`sims` command line: the Nishimori-Ouchi ripple and dune automata."
+COMMAND_TABLES = {  # program: (description, subcommands); docs/_hooks/reference.py writes the CLI pages from it
+    "jaxrender": (JAXRENDER_DESCRIPTION, JAXRENDER_COMMANDS),
+    "fitting": (FITTING_DESCRIPTION, FITTING_COMMANDS),
+    "sims": (SIMS_DESCRIPTION, SIMS_COMMANDS),
+}
+
+
 def jaxrender_main(argv=None) -> int:
-    return run_cli("jaxrender", "`jaxrender` command line: a thin layer over the public API.", JAXRENDER_COMMANDS, argv)
+    return run_cli("jaxrender", JAXRENDER_DESCRIPTION, JAXRENDER_COMMANDS, argv)
 
 
 def fitting_main(argv=None) -> int:
-    return run_cli("fitting",
-                   "`fitting` command line: BTF capture synthesis, fitting, pyramid, relighting and reports.",
-                   FITTING_COMMANDS, argv)
+    return run_cli("fitting", FITTING_DESCRIPTION, FITTING_COMMANDS, argv)
 
 
 def sims_main(argv=None) -> int:
-    return run_cli("sims", "`sims` command line: the Nishimori-Ouchi ripple and dune automata.", SIMS_COMMANDS, argv)
+    return run_cli("sims", SIMS_DESCRIPTION, SIMS_COMMANDS, argv)
 
 
 PROGRAMS = {"jaxrender": jaxrender_main, "fitting": fitting_main, "sims": sims_main}

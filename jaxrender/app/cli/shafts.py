@@ -16,7 +16,7 @@ import numpy as np
 from jaxrender.io import InputError, write_image
 from jaxrender.shafts import DEFAULT_METHOD, METHODS, render
 
-from ..scenes import load_shafts_scene
+from ..scenes import check_image_size, load_shafts_scene
 from .timed import add_time_argument, render_timed
 
 
@@ -64,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
     if args.width is not None or args.height is not None:
         scene = scene.with_size(args.width, args.height)
     spp = scene.render.spp if args.spp is None else args.spp
+    check_image_size(scene.camera.width, scene.camera.height, spp)
     if args.method == "planes":
         options = dict(planes=args.planes, subplanes=args.subplanes, quantize_bits=args.quantize_bits)
     else:

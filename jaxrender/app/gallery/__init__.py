@@ -88,6 +88,8 @@ def _page(result: dict) -> str:
             images = "".join(
                 f'<a href="{html.escape(p)}"><img src="{html.escape(p)}" alt="{alt}"></a>'
                 for p in entry.get("images", []) if p.lower().endswith((".png", ".gif", ".jpg")))
+            images += "".join(f'<video src="{html.escape(p)}" controls loop muted></video>'
+                              for p in entry.get("images", []) if p.lower().endswith(".mp4"))
             exr = " ".join(f'<a href="{html.escape(p)}">{html.escape(Path(p).name)}</a>'
                            for p in entry.get("images", []) if p.lower().endswith(".exr"))
             parts.append(
@@ -107,7 +109,7 @@ def _page(result: dict) -> str:
 <html><head><meta charset="utf-8"><title>jaxrender gallery</title>
 <style>
 body {{ font-family: sans-serif; margin: 2em; background: #fafafa; color: #222; }}
-img {{ max-width: 360px; margin: 4px; border: 1px solid #ccc; image-rendering: auto; }}
+img, video {{ max-width: 360px; margin: 4px; border: 1px solid #ccc; image-rendering: auto; }}
 .entry {{ background: white; padding: 1em; margin: 1em 0; border-radius: 6px; box-shadow: 0 1px 3px #0002; }}
 .tables {{ display: flex; gap: 2em; }} table {{ border-collapse: collapse; font-size: 90%; }}
 th, td {{ border-bottom: 1px solid #ddd; padding: 2px 8px; text-align: left; }}

@@ -12,7 +12,6 @@ import numpy as np
 
 from fitting import (
     LIGHT_DIRECTIONS,
-    TexelFit,
     direction_from_angles,
     fit_maps,
     relight,
@@ -21,10 +20,6 @@ from fitting import (
     synth_observations,
 )
 from jaxrender.io import atomic_path, linear_to_srgb, tonemap, write_exr
-
-
-def _rgb(maps: dict, name: str) -> np.ndarray:
-    return np.asarray(maps[name], np.float32)
 
 
 def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
@@ -46,9 +41,7 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
     t0 = time.perf_counter()
     maps = fit_maps(obs, chunk=1024, progress=False)
     fit_s = time.perf_counter() - t0
-    fitted = TexelFit(**{k: jnp.asarray(maps[k]) for k in ("rho_d", "rho_s", "normal", "sigma_x", "sigma_y",
-                                                           "residual", "cost", "converged", "num_steps",
-                                                           "n_valid")}).texel()
+    fitted = jax.tree.map(jnp.asarray, maps).texel()
 
     n_t, n_f = np.asarray(truth.lobe0.normal), np.asarray(fitted.lobe0.normal)
     ang = np.degrees(np.arccos(np.clip(np.sum(n_t * n_f, -1), -1, 1)))
@@ -101,7 +94,7 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
         if c == 0:
             ax.set_ylabel("|fit - truth|\n(normal: degrees)")
     fig.suptitle(f"BTF fit of a synthetic capture ({size[0]}x{size[1]} texels, {n_lights} lights, 8-bit, "
-                 f"6 exposures): fit {fit_s:.1f} s, converged {np.mean(maps['converged']):.1%}, "
+                 f"6 exposures): fit {fit_s:.1f} s, converged {np.mean(maps.converged):.1%}, "
                  f"median normal error {np.median(ang):.2f} deg",
                  fontsize=10)
     fig.tight_layout()

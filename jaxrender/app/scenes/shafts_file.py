@@ -1,8 +1,9 @@
 """Loading and validating light-shaft scene files (design.md, "Scene file for light shafts").
 
-Every problem raises `jaxrender.io.InputError(file, "FIELD: problem")`, e.g.
-`scene.json: spotlights[0].cutoff_deg: expected a number`. A medium with 8*pi*K > kappa
-(scattering more than it extinguishes) gives a `ShaftsSceneWarning`.
+Every problem of a file is reported at once (`jaxrender.io.InputErrors`, read by `jaxrender.io.Fields`),
+one line each: `scene.json: spotlights[0].cutoff_deg: expected a number, got 'wide'`; unknown keys are
+problems too. A medium with 8*pi*K > kappa (scattering more than it extinguishes) gives a
+`ShaftsSceneWarning`.
 """
 
 from __future__ import annotations
@@ -19,68 +20,21 @@ import numpy as np
 
 from jaxrender.camera import Camera
 from jaxrender.geometry import Quads, Spheres
-from jaxrender.io import InputError, read_image
+from jaxrender.io import Fields, InputError, read_image
 from jaxrender.lights import SpotLight
 from jaxrender.shafts import Medium, RenderSettings, ShaftsScene
 
-__all__ = ["load_shafts_scene", "shafts_scene_from_dict", "ShaftsSceneWarning", "RENDER_DEFAULTS"]
+__all__ = ["load_shafts_scene", "shafts_scene_from_dict", "ShaftsSceneWarning", "RENDER_DEFAULTS", "check_image_size",
+           "MAX_SIDE", "MAX_SAMPLES"]
 
+MAX_SIDE = 16384  # pixels a side (and texels of a shadow map or table)
+MAX_SAMPLES = 2**26  # width * height * spp: per-sample arrays of up to ~30 values keep int32 indices below 2^31
 RENDER_DEFAULTS = {"shadow_map": 1024, "shadow_bias": 0.002, "table_size": 256, "spp": 1, "s_min": 0.05,
                    "s_max": 20.0, "t_max": 20.0, "display_white": 1.0}
 
 
 class ShaftsSceneWarning(UserWarning):
-    """A scene that loads but is physically suspicious (e.g. 8*pi*K > kappa)."""
-
-
-class _Reader:
-    def __init__(self, source):
-        self.source = source
-
-    def fail(self, field: str, problem: str):
-        raise InputError(self.source, f"{field}: {problem}")
-
-    def obj(self, d: Any, field: str) -> dict:
-        if not isinstance(d, dict):
-            self.fail(field, "expected an object")
-        return d
-
-    def get(self, d: dict, key: str, field: str, default=None, required=True):
-        if key not in d:
-            if required:
-                self.fail(f"{field}.{key}" if field else key, "missing field")
-            return default
-        return d[key]
-
-    def number(self, value: Any, field: str, *, lo=None, hi=None, lo_open=False) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            self.fail(field, "expected a number")
-        value = float(value)
-        if lo is not None and (value < lo or (lo_open and value == lo)):
-            self.fail(field, f"must be {'>' if lo_open else '>='} {lo:g}, got {value:g}")
-        if hi is not None and value > hi:
-            self.fail(field, f"must be <= {hi:g}, got {value:g}")
-        return value
-
-    def integer(self, value: Any, field: str, *, lo=1) -> int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            self.fail(field, "expected an integer")
-        if value < lo:
-            self.fail(field, f"must be >= {lo}, got {value}")
-        return int(value)
-
-    def vec3(self, value: Any, field: str) -> np.ndarray:
-        if not isinstance(value, (list, tuple)) or len(value) != 3:
-            self.fail(field, "expected a list of 3 numbers")
-        return np.array([self.number(v, f"{field}[{i}]") for i, v in enumerate(value)])
-
-    def rgb(self, value: Any, field: str) -> np.ndarray:
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return np.full(3, self.number(value, field, lo=0.0))
-        out = self.vec3(value, field)
-        if np.any(out < 0):
-            self.fail(field, "must be non-negative")
-        return out
+    """A scene that loads but is physically suspicious (e.g. `8*pi*K > kappa`)."""
 
 
 def _parallel(a: np.ndarray, b: np.ndarray) -> bool:
@@ -90,19 +44,131 @@ def _parallel(a: np.ndarray, b: np.ndarray) -> bool:
     return np.linalg.norm(np.cross(a / na, b / nb)) < 1e-6
 
 
-def _light_map(reader: _Reader, value: Any, field: str, base_dir: Path) -> np.ndarray:
-    if not isinstance(value, str) or not value:
-        reader.fail(field, "expected a file name")
-    path = Path(value)
-    if not path.is_absolute():
-        path = base_dir / path
+def check_image_size(width: int, height: int, spp: int = 1, *, source=None) -> None:
+    """Refuse images whose samples the renderer cannot index (`InputError`): width * height * spp
+    above `MAX_SAMPLES`, or a side above `MAX_SIDE`."""
+    if max(width, height) > MAX_SIDE or width * height * spp > MAX_SAMPLES:
+        raise InputError(source, f"image of {width} x {height} pixels at {spp} samples per pixel is beyond what the "
+                                 f"renderer indexes (at most {MAX_SIDE} pixels a side and {MAX_SAMPLES} samples)")
+
+
+def _look_at_ok(f: Fields, origin, target, up, *, origin_name: str, view_name: str) -> bool:
+    """A look-at frame (camera or spot light) exists: target apart from the origin, up not along the view."""
+    if np.linalg.norm(target - origin) == 0:
+        f.problem("target", f"equals {origin_name}")
+        return False
+    if _parallel(up, target - origin):
+        f.problem("up", f"parallel to {view_name}")
+        return False
+    return True
+
+
+def _camera(f: Fields) -> Camera | None:
+    f.known(("eye", "target", "up", "fov_y_deg", "width", "height"))
+    eye, target = f.vector("eye"), f.vector("target")
+    up = f.vector("up", default=[0.0, 1.0, 0.0])
+    fov = f.number("fov_y_deg", lo=0.0, hi=179.0, lo_open=True)
+    width, height = f.integer("width", lo=1, hi=MAX_SIDE), f.integer("height", lo=1, hi=MAX_SIDE)
+    if eye is None or target is None or up is None or not _look_at_ok(
+            f, eye, target, up, origin_name="camera.eye", view_name="the viewing direction"):
+        return None
+    return None if None in (fov, width, height) else Camera(eye, target, up, fov, width=width, height=height)
+
+
+def _medium(f: Fields) -> Medium | None:
+    f.known(("rho", "kappa", "K"))
+    rho, kappa, K = (f.number(key, lo=0.0) for key in ("rho", "kappa", "K"))
+    if None in (rho, kappa, K):
+        return None
+    if 8 * math.pi * K > kappa:
+        warnings.warn(f"{f.source}: medium: 8*pi*K = {8 * math.pi * K:.4g} > kappa = {kappa:.4g}: the fog scatters "
+                      "more light than it extinguishes", ShaftsSceneWarning, stacklevel=3)
+    return Medium(rho, kappa, K)
+
+
+def _render(f: Fields) -> RenderSettings | None:
+    f.known(tuple(RENDER_DEFAULTS))
+    values = {key: f.integer(key, default=RENDER_DEFAULTS[key], lo=2, hi=MAX_SIDE)
+              for key in ("shadow_map", "table_size")}
+    # samples per pixel: a k x k sub-pixel grid (an extension of design.md's format)
+    values["spp"] = f.integer("spp", default=RENDER_DEFAULTS["spp"], lo=1, hi=1024)
+    if values["spp"] is not None and math.isqrt(values["spp"]) ** 2 != values["spp"]:
+        f.problem("spp", f"must be a perfect square (1, 4, 9, 16, ...), got {values['spp']}")
+        values["spp"] = None
+    for key in ("shadow_bias", "s_min", "s_max", "t_max", "display_white"):
+        values[key] = f.number(key, default=RENDER_DEFAULTS[key], lo=0.0, lo_open=key != "shadow_bias")
+    if None in values.values():
+        return None
+    if values["s_max"] <= values["s_min"]:
+        f.problem("s_max", f"must exceed render.s_min ({values['s_min']:g})")
+        return None
+    return RenderSettings(shadow_map=values["shadow_map"], table_size=values["table_size"], spp=values["spp"],
+                          **{k: jnp.asarray(values[k], dtype=float)
+                             for k in ("shadow_bias", "s_min", "s_max", "t_max", "display_white")})
+
+
+def _light_map(f: Fields, base_dir: Path) -> np.ndarray | None:
+    name = f.string("light_map")
+    if name is None:
+        return None
+    path = Path(name) if Path(name).is_absolute() else base_dir / name
     try:
         image = read_image(path)
     except InputError as error:
-        reader.fail(field, f"cannot read light map {value!r} ({error.problem})")
+        f.problem("light_map", f"cannot read light map {name!r} ({error.problem})")
+        return None
     if image.shape[2] == 1:
         image = np.repeat(image, 3, axis=2)
     return np.ascontiguousarray(image[..., :3], dtype=np.float64)
+
+
+def _spotlight(f: Fields, base_dir: Path) -> SpotLight | None:
+    f.known(("position", "target", "up", "cutoff_deg", "beam_width_deg", "intensity", "light_map"))
+    position, target = f.vector("position"), f.vector("target")
+    up = f.vector("up", default=[0.0, 1.0, 0.0])
+    cutoff = f.number("cutoff_deg", lo=0.0, hi=89.0, lo_open=True)
+    beam = f.number("beam_width_deg", default=None, lo=0.0, hi=cutoff)
+    intensity = f.rgb("intensity")
+    light_map = _light_map(f, base_dir) if f.raw("light_map", default=None) is not None else None
+    if position is None or target is None or up is None or not _look_at_ok(
+            f, position, target, up, origin_name="the light's position", view_name="the light's direction"):
+        return None
+    if cutoff is None or intensity is None:
+        return None
+    beam = 0.75 * cutoff if beam is None else beam  # Mitsuba's default
+    return SpotLight(position, target, up, cutoff, beam, intensity, light_map)
+
+
+_OBJECT_FIELDS = {"sphere": ("type", "center", "radius", "albedo"), "quad": ("type", "center", "u", "v", "albedo")}
+
+
+def _objects(items: list[Fields]) -> tuple[Spheres, Quads]:
+    spheres: dict[str, list] = {"center": [], "radius": [], "albedo": []}
+    quads: dict[str, list] = {"center": [], "u": [], "v": [], "albedo": []}
+    for f in items:
+        kind = f.raw("type")
+        if not isinstance(kind, str) or kind not in _OBJECT_FIELDS:
+            if kind is not None:
+                f.problem("type", f"unknown object type {kind!r} (expected 'sphere' or 'quad')")
+            continue
+        f.known(_OBJECT_FIELDS[kind])
+        values = {"center": f.vector("center"), "albedo": f.rgb("albedo", default=0.5)}
+        if kind == "sphere":
+            values["radius"] = f.number("radius", lo=0.0, lo_open=True)
+        else:
+            values["u"], values["v"] = f.vector("u"), f.vector("v")
+            if values["u"] is not None and values["v"] is not None and _parallel(values["u"], values["v"]):
+                f.problem("v", "parallel to u (degenerate quad)")
+                values["v"] = None
+        if not any(v is None for v in values.values()):
+            for key, value in values.items():
+                (spheres if kind == "sphere" else quads)[key].append(value)
+
+    def rows(values, n_cols):
+        return np.asarray(values, dtype=float).reshape((-1, n_cols) if n_cols else (-1,))
+
+    return (Spheres(rows(spheres["center"], 3), rows(spheres["radius"], 0), rows(spheres["albedo"], 3)),
+            Quads(rows(quads["center"], 3), rows(quads["u"], 3), rows(quads["v"], 3), rows(quads["albedo"], 3)))
 
 
 def shafts_scene_from_dict(d: Any, *, base_dir: str | os.PathLike = ".",
@@ -110,110 +176,21 @@ def shafts_scene_from_dict(d: Any, *, base_dir: str | os.PathLike = ".",
     """Validate a parsed scene (design.md contract) and build a `ShaftsScene`.
 
     `base_dir`: where relative light-map paths are resolved; `source`: the file named in errors.
+    Every problem is reported at once (`jaxrender.io.InputErrors`, one `FILE: field: problem` line each).
     """
-    r = _Reader(os.fspath(source))
-    base_dir = Path(base_dir)
-    d = r.obj(d, "scene")
-    for key in ("camera", "medium", "spotlights", "objects"):
-        r.get(d, key, "")
-
-    cam_d = r.obj(d["camera"], "camera")
-    eye = r.vec3(r.get(cam_d, "eye", "camera"), "camera.eye")
-    target = r.vec3(r.get(cam_d, "target", "camera"), "camera.target")
-    up = r.vec3(r.get(cam_d, "up", "camera", default=[0.0, 1.0, 0.0], required=False), "camera.up")
-    fov = r.number(r.get(cam_d, "fov_y_deg", "camera"), "camera.fov_y_deg", lo=0.0, hi=179.0, lo_open=True)
-    width = r.integer(r.get(cam_d, "width", "camera"), "camera.width")
-    height = r.integer(r.get(cam_d, "height", "camera"), "camera.height")
-    if np.linalg.norm(target - eye) == 0:
-        r.fail("camera.target", "equals camera.eye")
-    if _parallel(up, target - eye):
-        r.fail("camera.up", "parallel to the viewing direction")
-    camera = Camera(eye, target, up, fov, width=width, height=height)
-
-    med_d = r.obj(d["medium"], "medium")
-    rho = r.number(r.get(med_d, "rho", "medium"), "medium.rho", lo=0.0)
-    kappa = r.number(r.get(med_d, "kappa", "medium"), "medium.kappa", lo=0.0)
-    K = r.number(r.get(med_d, "K", "medium"), "medium.K", lo=0.0)
-    if 8 * math.pi * K > kappa:
-        warnings.warn(f"{r.source}: medium: 8*pi*K = {8 * math.pi * K:.4g} > kappa = {kappa:.4g}: the fog scatters "
-                      "more light than it extinguishes", ShaftsSceneWarning, stacklevel=2)
-    medium = Medium(rho, kappa, K)
-
-    ren_d = r.obj(d.get("render", {}), "render")
-    settings = dict(RENDER_DEFAULTS)
-    for key in ("shadow_map", "table_size"):
-        if key in ren_d:
-            settings[key] = r.integer(ren_d[key], f"render.{key}", lo=2)
-    if "spp" in ren_d:  # samples per pixel: a k x k sub-pixel grid (an extension of design.md's format)
-        settings["spp"] = r.integer(ren_d["spp"], "render.spp", lo=1)
-        if math.isqrt(settings["spp"]) ** 2 != settings["spp"]:
-            r.fail("render.spp", f"must be a perfect square (1, 4, 9, 16, ...), got {settings['spp']}")
-    for key in ("shadow_bias", "s_min", "s_max", "t_max", "display_white"):
-        if key in ren_d:
-            settings[key] = r.number(ren_d[key], f"render.{key}", lo=0.0, lo_open=key != "shadow_bias")
-    if settings["s_max"] <= settings["s_min"]:
-        r.fail("render.s_max", f"must exceed render.s_min ({settings['s_min']:g})")
-    render = RenderSettings(shadow_map=settings["shadow_map"], table_size=settings["table_size"], spp=settings["spp"],
-                            **{k: jnp.asarray(settings[k], dtype=float)
-                               for k in ("shadow_bias", "s_min", "s_max", "t_max", "display_white")})
-
-    lights_d = r.get(d, "spotlights", "")
-    if not isinstance(lights_d, list):
-        r.fail("spotlights", "expected a list")
-    lights = []
-    for i, ld in enumerate(lights_d):
-        f = f"spotlights[{i}]"
-        ld = r.obj(ld, f)
-        pos = r.vec3(r.get(ld, "position", f), f"{f}.position")
-        tgt = r.vec3(r.get(ld, "target", f), f"{f}.target")
-        lup = r.vec3(r.get(ld, "up", f, default=[0.0, 1.0, 0.0], required=False), f"{f}.up")
-        cutoff = r.number(r.get(ld, "cutoff_deg", f), f"{f}.cutoff_deg", lo=0.0, hi=89.0, lo_open=True)
-        beam = ld.get("beam_width_deg")
-        beam = 0.75 * cutoff if beam is None else r.number(beam, f"{f}.beam_width_deg", lo=0.0, hi=cutoff)
-        intensity = r.rgb(r.get(ld, "intensity", f), f"{f}.intensity")
-        if np.linalg.norm(tgt - pos) == 0:
-            r.fail(f"{f}.target", "equals the light's position")
-        if _parallel(lup, tgt - pos):
-            r.fail(f"{f}.up", "parallel to the light's direction")
-        lmap = None
-        if ld.get("light_map") is not None:
-            lmap = _light_map(r, ld["light_map"], f"{f}.light_map", base_dir)
-        lights.append(SpotLight(pos, tgt, lup, cutoff, beam, intensity, lmap))
-    if not lights:
-        r.fail("spotlights", "at least one spot light is needed")
-
-    objs = r.get(d, "objects", "")
-    if not isinstance(objs, list):
-        r.fail("objects", "expected a list")
-    spheres: dict[str, list] = {"center": [], "radius": [], "albedo": []}
-    quads: dict[str, list] = {"center": [], "u": [], "v": [], "albedo": []}
-    for i, od in enumerate(objs):
-        f = f"objects[{i}]"
-        od = r.obj(od, f)
-        kind = r.get(od, "type", f)
-        albedo = r.rgb(od.get("albedo", 0.5), f"{f}.albedo")
-        if kind == "sphere":
-            spheres["center"].append(r.vec3(r.get(od, "center", f), f"{f}.center"))
-            spheres["radius"].append(r.number(r.get(od, "radius", f), f"{f}.radius", lo=0.0, lo_open=True))
-            spheres["albedo"].append(albedo)
-        elif kind == "quad":
-            quads["center"].append(r.vec3(r.get(od, "center", f), f"{f}.center"))
-            u = r.vec3(r.get(od, "u", f), f"{f}.u")
-            v = r.vec3(r.get(od, "v", f), f"{f}.v")
-            if _parallel(u, v):
-                r.fail(f"{f}.v", "parallel to u (degenerate quad)")
-            quads["u"].append(u)
-            quads["v"].append(v)
-            quads["albedo"].append(albedo)
-        else:
-            r.fail(f"{f}.type", f"unknown object type {kind!r} (expected 'sphere' or 'quad')")
-
-    def rows(values, n_cols):
-        return np.asarray(values, dtype=float).reshape((-1, n_cols) if n_cols else (-1,))
-
-    sph = Spheres(rows(spheres["center"], 3), rows(spheres["radius"], 0), rows(spheres["albedo"], 3))
-    qd = Quads(rows(quads["center"], 3), rows(quads["u"], 3), rows(quads["v"], 3), rows(quads["albedo"], 3))
-    return ShaftsScene(camera, medium, lights, sph, qd, render, source=os.fspath(source))
+    doc = Fields.document(d, os.fspath(source))
+    doc.known(("camera", "medium", "render", "spotlights", "objects"))
+    camera = _camera(doc.section("camera"))
+    medium = _medium(doc.section("medium"))
+    render = _render(doc.section("render", required=False))
+    light_items = doc.items("spotlights")
+    lights = [_spotlight(f, Path(base_dir)) for f in light_items]
+    if doc.has("spotlights") and isinstance(doc.raw("spotlights"), list) and not doc.raw("spotlights"):
+        doc.problem("spotlights", "at least one spot light is needed")
+    spheres, quads = _objects(doc.items("objects"))
+    doc.problems.check()
+    check_image_size(camera.width, camera.height, render.spp, source=source)
+    return ShaftsScene(camera, medium, lights, spheres, quads, render, source=os.fspath(source))
 
 
 def load_shafts_scene(path: str | os.PathLike) -> ShaftsScene:

@@ -1,11 +1,12 @@
-"""The Noh animation: a sequence of frames rendered one jitted call each (`render_noh`: the
-moving garment of `.motion` by default, or the static drape), tone mapped with one exposure for
-the whole sequence, and written as PNG + EXR frames and a GIF."""
+"""The Noh animation: the scene assembled, its frames rendered one jitted call each
+(`render_noh`), tone mapped with one exposure for the whole sequence, and written as PNG + EXR
+frames, an animated GIF and an H.264 MP4 (`write_animation`)."""
 
 from __future__ import annotations
 
 import os
 import time
+import warnings
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -14,81 +15,45 @@ import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from jaxrender.brdf import BTFTexel
-from jaxrender.io import atomic_path, linear_to_srgb, luminance, tonemap, write_exr, write_png
+from jaxrender.io import BVHMotion, atomic_path, linear_to_srgb, luminance, tonemap, write_exr, write_png
 from jaxrender.lights import EnvMap
-from jaxrender.timing import time_calls, timed_call
 
-from .frame import noh_frame_jit
-from .motion import render_moving_noh
-from .prepare import prepare_noh
-from .scene import garment_rig, noh_scene
+from .motion import render_sequence
+from .scene import noh_scene
+
+EXPOSURE_KEY = 0.16   # the performer's 90th-percentile luminance on screen: a night lit by fires
 
 
-def render_noh(*, frames: int = 20, width: int = 720, height: int = 480, key: PRNGKeyArray | None = None,
+def render_noh(*, frames: int = 60, width: int = 720, height: int = 480, key: PRNGKeyArray | None = None,
                mask_rgb: np.ndarray | None = None, btfs: dict[str, list[BTFTexel]] | None = None,
-               env: EnvMap | None = None, k_env: int = 20, k_fire: int = 20, progress=None,
-               info: dict | None = None, time_repeats: int = 0, shadow_resolution: int = 512,
-               moving: bool = True, frame_dt: float = 0.1, **scene_kwargs) -> Float[Array, "F H W 3"]:
-    """The animation: `frames` linear-radiance frames H x W x 3 (float32).
+               env: EnvMap | None = None, motion: BVHMotion | None = None, motion_source=None, k_env: int = 20,
+               k_fire: int = 20, progress=None, info: dict | None = None, time_repeats: int = 0,
+               shadow_resolution: int = 512, frame_dt: float = 0.1, **scene_kwargs) -> Float[Array, "F H W 3"]:
+    """The animation: `frames` linear-radiance frames H x W x 3 (float32), `frame_dt` s apart, of
+    the performer dancing `motion` (a BVH motion; default: the built-in `sims.noh_dance`).
 
-    `progress(1)` is called after each frame; `info` (a dict) receives `prepare_s`, `compile_s`
-    (the first frame, including compilation), `frame_s` (a list, later frames) and `exposure`
-    (for `tonemap_frames`: the garment's 90th-percentile luminance in frame 0 -> 0.3).
-    `time_repeats` = N: afterwards render N more frames (cycling through the sequence, discarded)
-    and put their times into `info["timed_s"]` (compiled, `block_until_ready`).
-    `moving` (default): the garment dances (`.motion`, frames `frame_dt` s apart) and everything
-    that depends on it, shadows and the floor's reflection included, is computed every frame;
-    otherwise the static drape with the per-sequence part computed once (`prepare_noh`).
+    `progress(1)` is called after each frame; `info` (a dict) receives `prepare_s` (scene, robe
+    and the sequence's constant part), `compile_s` (the first frame, including compilation),
+    `frame_s` (a list, later frames), `recompiles` and `exposure` (for `tonemap_frames`: the
+    performer's 90th-percentile luminance in frame 0 -> `EXPOSURE_KEY`). `time_repeats` = N: afterwards N
+    more frames of the dance (discarded) timed into `info["timed_s"]`.
     """
-    if moving:
-        return _render_moving(frames=frames, width=width, height=height, key=key, mask_rgb=mask_rgb, btfs=btfs,
-                              env=env, k_env=k_env, k_fire=k_fire, progress=progress, info=info,
-                              time_repeats=time_repeats, shadow_resolution=shadow_resolution, frame_dt=frame_dt,
-                              **scene_kwargs)
-    key = jax.random.key(2024) if key is None else key
-    k_scene, k_env_key, k_frames = jax.random.split(key, 3)
-    t0 = time.perf_counter()
-    scene = noh_scene(width=width, height=height, frames=frames, key=k_scene, mask_rgb=mask_rgb, btfs=btfs, env=env,
-                      **scene_kwargs)
-    prep = jax.block_until_ready(prepare_noh(scene, key=k_env_key, k_env=k_env, shadow_resolution=shadow_resolution))
-    prepare_s = time.perf_counter() - t0
-
-    def frame(i: int) -> Array:
-        return noh_frame_jit(scene, prep, scene.flames[:, i % frames], jax.random.fold_in(k_frames, i), k_fire=k_fire)
-
-    out, seconds = [], []
-    for f in range(frames):  # frames are sequential: one jitted call each, the first one compiles
-        image, dt = timed_call(lambda f=f: frame(f))
-        seconds.append(dt)
-        out.append(np.asarray(image, dtype=np.float32))
-        if progress is not None:
-            progress(1)
-    _, timed = time_calls(lambda: frame(frames), time_repeats) if time_repeats else (None, None)
-    if info is not None:
-        info["timed_s"] = list(timed.runs_s) if timed else []
-        lum = np.asarray(luminance(out[0].reshape(-1, 3)[np.asarray(prep.garment.index)]))
-        info.update(prepare_s=prepare_s, compile_s=seconds[0], frame_s=seconds[1:],
-                    exposure=0.3 / max(float(np.percentile(lum, 90)) if lum.size else 1.0, 1e-6))
-    return np.stack(out)
-
-
-def _render_moving(*, frames, width, height, key, mask_rgb, btfs, env, k_env, k_fire, progress, info, time_repeats,
-                   shadow_resolution, frame_dt, cloth_rows: int = 40, cloth_cols: int = 32, **scene_kwargs):
     key = jax.random.key(2024) if key is None else key
     k_scene, k_rest = jax.random.split(key)
     t0 = time.perf_counter()
-    scene = noh_scene(width=width, height=height, frames=frames, key=k_scene, mask_rgb=mask_rgb, btfs=btfs, env=env,
-                      cloth_rows=cloth_rows, cloth_cols=cloth_cols, **scene_kwargs)
+    scene = noh_scene(width=width, height=height, frames=min(frames, 20), key=k_scene, mask_rgb=mask_rgb, btfs=btfs,
+                      env=env, motion=motion, motion_source=motion_source,
+                      duration=(frames + time_repeats) * frame_dt, **scene_kwargs)
     scene_s = time.perf_counter() - t0
     details: dict = {}
-    out, _ = render_moving_noh(scene, garment_rig(cloth_rows, cloth_cols), frames=frames, key=k_rest, k_env=k_env,
-                               k_fire=k_fire, frame_dt=frame_dt, shadow_resolution=shadow_resolution,
-                               progress=progress, time_repeats=time_repeats, info=details)
+    out, _ = render_sequence(scene, frames=frames, key=k_rest, k_env=k_env, k_fire=k_fire, frame_dt=frame_dt,
+                             shadow_resolution=shadow_resolution, progress=progress, time_repeats=time_repeats,
+                             info=details)
     if info is not None:
-        mask = details.pop("garment_mask").reshape(-1)
+        mask = details.pop("performer_mask").reshape(-1)
         lum = np.asarray(luminance(out[0].reshape(-1, 3)[mask]))
         info.update(details, prepare_s=scene_s + details["prepare_s"],
-                    exposure=0.3 / max(float(np.percentile(lum, 90)) if lum.size else 1.0, 1e-6))
+                    exposure=EXPOSURE_KEY / max(float(np.percentile(lum, 90)) if lum.size else 1.0, 1e-6))
     return np.stack(out)
 
 
@@ -101,9 +66,10 @@ def tonemap_frames(frames: np.ndarray, *, exposure: float | None = None, key_val
     return np.stack([np.asarray(tonemap(f, exposure=exposure)) for f in frames])
 
 
-def write_animation(out_dir: str | os.PathLike, frames: np.ndarray, *, gif_name: str = "noh.gif",
-                    fps: float = 10.0, exposure: float | None = None) -> list[Path]:
-    """frame_NNN.png (tone mapped) + frame_NNN.exr (linear) + an animated GIF; atomic per file."""
+def write_animation(out_dir: str | os.PathLike, frames: np.ndarray, *, name: str = "noh", fps: float = 10.0,
+                    exposure: float | None = None, video: bool = True) -> list[Path]:
+    """frame_NNN.png (tone mapped) + frame_NNN.exr (linear) + NAME.gif + NAME.mp4 (H.264 through
+    imageio-ffmpeg, when `video`); atomic per file."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     shown = tonemap_frames(frames, exposure=exposure)
@@ -112,7 +78,16 @@ def write_animation(out_dir: str | os.PathLike, frames: np.ndarray, *, gif_name:
         paths.append(write_png(out_dir / f"frame_{i:03d}.png", disp))
         paths.append(write_exr(out_dir / f"frame_{i:03d}.exr", lin))
     rgb8 = (np.clip(np.asarray(linear_to_srgb(shown)), 0, 1) * 255 + 0.5).astype(np.uint8)
-    with atomic_path(out_dir / gif_name) as tmp:
+    with atomic_path(out_dir / f"{name}.gif") as tmp:
         iio.imwrite(tmp, rgb8, extension=".gif", duration=1000.0 / fps, loop=0)
-    paths.append(out_dir / gif_name)
+    paths.append(out_dir / f"{name}.gif")
+    if video:
+        # H.264 in yuv420p needs even sides: pad by one edge row / column if odd
+        h, w = rgb8.shape[1], rgb8.shape[2]
+        even = np.pad(rgb8, ((0, 0), (0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+        with atomic_path(out_dir / f"{name}.mp4") as tmp, warnings.catch_warnings():
+            # imageio-ffmpeg starts ffmpeg by fork + exec, which JAX warns about (harmless: exec follows)
+            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+            iio.imwrite(tmp, even, plugin="FFMPEG", fps=fps, codec="libx264", macro_block_size=1, quality=8)
+        paths.append(out_dir / f"{name}.mp4")
     return paths

@@ -23,7 +23,9 @@ def procedural_btf(kind: str, size: int = 32, *, key: PRNGKeyArray | None = None
     `brocade`: `fitting.synth.synth_maps` (silk ground with gold weft floats); `hexagon`: a
     tortoise-shell hexagon weave (threads circling each cell: normals tilt away from the cell
     centre, anisotropy along the rim); `satin`: long warp floats (narrow highlights across them);
-    `pattern`: a plain weave of white silk (rho_d replaced by the mask colour when rendering).
+    `pattern`: a plain weave of white silk (rho_d replaced by the mask colour when rendering);
+    `painted`: a smooth matte surface with a faint sheen (the mask's gofun, skin, tabi; rho_d from
+    the body page's colour); `hair`: dark fibres along v, a highlight across them.
     """
     dtype = default_float()
     key = jax.random.key(0) if key is None else key
@@ -75,6 +77,17 @@ def procedural_btf(kind: str, size: int = 32, *, key: PRNGKeyArray | None = None
         rho_s = np.broadcast_to(np.asarray([0.3, 0.3, 0.3]), x.shape + (3,))
         sigma_x = np.where(warp_up, 0.3, 0.12)
         sigma_y = np.where(warp_up, 0.12, 0.3)
+    elif kind == "painted":
+        normal = np.stack([np.zeros_like(x), np.zeros_like(x), np.ones_like(x)], -1)
+        rho_d = np.ones(x.shape + (3,))
+        rho_s = np.full(x.shape + (3,), 0.04)
+        sigma_x = sigma_y = np.full(x.shape, 0.3)
+    elif kind == "hair":
+        wave = 0.25 * np.sin(2 * np.pi * x * 8)
+        normal = np.stack([wave, np.zeros_like(x), np.ones_like(x)], -1)
+        rho_d = np.broadcast_to(np.asarray([0.012, 0.010, 0.010]), x.shape + (3,))
+        rho_s = np.full(x.shape + (3,), 0.25)
+        sigma_x, sigma_y = np.full(x.shape, 0.35), np.full(x.shape, 0.06)
     else:
         raise ValueError(f"unknown BTF kind {kind!r}: use one of {LABELS}")
     normal = normal / np.linalg.norm(normal, axis=-1, keepdims=True)

@@ -1,11 +1,11 @@
-"""The Noh scene assembled (metres, y up, the stage floor at y = 0): a garment hung from two
-shoulder points (`sims.drape_garment`, Verlet mass-spring) in front of the camera, four bonfires
-around the stage, each a flame quad whose emission texture is the current frame of
-`sims.fire_frames`, the garment's materials by its mask, and the environment."""
+"""The Takigi Noh scene assembled (metres, y up, the stage floor at y = 0, the audience toward +z):
+the performer (a motion placed on the stage, its robe and body, `.performer`), the stage
+(`.stage`), four bonfires whose flames are the frames of `sims.fire_frames`, the costume's
+materials by its mask, the environment, the camera."""
 
 from __future__ import annotations
 
-import functools
+import math
 
 import equinox as eqx
 import jax
@@ -16,81 +16,110 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray
 from jaxrender.brdf import BTFTexel
 from jaxrender.camera import Camera
 from jaxrender.fabric import MaterialSet, stack_materials
+from jaxrender.io import BVHMotion
 from jaxrender.lights import EnvMap, QuadLights
 from jaxrender.maths import default_float
-from sims import DrapedCloth, cloth_mesh, drape_garment, fire_frames
+from sims import SkeletonMotion, fire_frames, noh_dance, place_motion, pose_motion
+from sims.costume import body_scale, body_volumes, dress_performer, performer_joints
 
 from .environment import default_environment
 from .mask import LABELS, default_mask, mask_from_rgb
 from .materials import default_btfs
+from .performer import PerformerRig, body_page, performer_rig
+from .stage import FIRE_SITES, FLAME_BASE, FLAME_SIZE, StageGeometry, build_stage
 
-
-@functools.lru_cache(maxsize=2)
-def garment_rig(rows: int, cols: int) -> DrapedCloth:
-    """The settled garment and its simulation rig (the moving sequence continues from it)."""
-    return drape_garment(rows=rows, cols=cols, top=1.6, height=1.5, shoulder_span=1.0, shoulder_u=0.08,
-                         body_radius=0.12, body_z=-0.16, folds=5, fold_depth=0.05)
-
-
-def _cloth(rows: int, cols: int):
-    rig = garment_rig(rows, cols)
-    return cloth_mesh(rig, rig.state.x)
+STAGE_SPOT = (0.0, 0.6)                               # where the performer's path is centred (x, z)
+CAMERA = ((2.0, 1.6, 7.2), (-0.45, 1.1, -0.2), 40.0)   # eye, target, vertical field of view (deg)
+ATLAS = 512                                           # each texture page's side (texels)
+SKY_IRRADIANCE = 0.02                                 # the dusk sky on the open ground (the bonfires dominate)
 
 
 class NohScene(eqx.Module):
     camera: Camera
-    vertices: Float[Array, "V 3"]
-    vertex_normals: Float[Array, "V 3"]
-    uv: Float[Array, "V 2"]
-    triangles: Int[Array, "T 3"]
     fires: QuadLights                       # emission: the flame sequences, F_fires x frames x H x W x 3
     flames: Float[Array, "Q N H W 3"]
-    labels: Int[Array, "Hm Wm"]
+    labels: Int[Array, "Hm Wm"]             # two pages stacked: the robe's mask, the body page
     colours: Float[Array, "Hm Wm 3"]
     mats: MaterialSet
     env: EnvMap
+    stage: StageGeometry
+    performer: PerformerRig
     tiles: float = eqx.field(static=True)
 
 
-FIRE_POSITIONS = ((-1.25, 0.9), (1.25, 0.9), (-1.6, -1.3), (1.6, -1.3))   # (x, z) of the four bonfires
-FIRE_SIZE = (0.55, 0.8)                                                    # width, height (m)
-FIRE_BASE = 0.95                                                           # flames burn in baskets on stands (m)
+def motion_units(bvh: BVHMotion, *, source=None) -> float:
+    """Metres per unit of the file: the one of m, cm, mm, inch that makes the hips 0.5-1.5 m high."""
+    motion = pose_motion(bvh, scale=1.0)
+    joints = performer_joints(bvh.names, source=source)
+    p = np.asarray(motion.positions[0])
+    feet = min(p[joints["foot_L"], 1], p[joints["foot_R"], 1])
+    height = abs(float(p[joints["neck"], 1] - feet))
+    return min((1.0, 0.01, 0.0254, 0.001), key=lambda u: abs(math.log(max(height * u, 1e-9) / 1.28)))
+
+
+def stage_motion(bvh: BVHMotion, *, duration: float, source=None) -> tuple[SkeletonMotion, dict[str, int]]:
+    """The motion in metres, turned to face the audience at its first frame, its path over
+    `duration` seconds centred on `STAGE_SPOT`, its lowest foot on the floor at frame 0."""
+    joints = performer_joints(bvh.names, source=source)
+    motion = pose_motion(bvh, scale=motion_units(bvh, source=source))
+    p = np.asarray(motion.positions, np.float64)
+    left = p[0, joints["upper_leg_L"]] - p[0, joints["upper_leg_R"]]
+    forward = np.cross(left, [0.0, 1.0, 0.0])
+    yaw = -math.atan2(forward[0], forward[2])
+    turned = place_motion(motion, yaw=yaw, shift=(0.0, 0.0, 0.0))
+    used = min(motion.frames, int(round(duration / motion.frame_time)) + 1)
+    hips = np.asarray(turned.positions[:used, joints["hips"]], np.float64)
+    centre = 0.5 * (hips.min(axis=0) + hips.max(axis=0))
+    volumes = body_volumes(turned, joints)
+    a, b = (np.asarray(e) for e in volumes.ends(turned.positions[0], turned.rotations[0]))
+    feet = [i for i, n in enumerate(volumes.names) if n.startswith(("foot", "toes", "shin"))]
+    lowest = float(np.min(np.minimum(a[feet, 1], b[feet, 1]) - np.asarray(volumes.radius)[feet]))
+    shift = (STAGE_SPOT[0] - centre[0], 0.004 - lowest, STAGE_SPOT[1] - centre[2])
+    return place_motion(turned, yaw=0.0, shift=shift), joints
 
 
 def noh_scene(*, width: int = 720, height: int = 480, frames: int = 20, key: PRNGKeyArray | None = None,
               mask_rgb: np.ndarray | None = None, btfs: dict[str, list[BTFTexel]] | None = None,
-              env: EnvMap | None = None, cloth_rows: int = 40, cloth_cols: int = 32, tiles: float = 6.0,
-              flame_size: tuple[int, int] = (128, 64), fire_intensity: float = 12.0, btf_size: int = 32,
+              env: EnvMap | None = None, motion: BVHMotion | None = None, motion_source=None,
+              duration: float = 6.0, robe: dict | None = None, tiles: float = 10.0,
+              flame_size: tuple[int, int] = (128, 64), fire_intensity: float = 60.0, btf_size: int = 32,
               pyramid: str = "em") -> NohScene:
-    """Assemble the scene; every input not given is the built-in one (module docstring)."""
+    """Assemble the scene; every input not given is the built-in one (module docstring). `motion`:
+    a BVH motion (default `sims.noh_dance`); `robe`: `sims.costume.dress_performer` keywords."""
     key = jax.random.key(2024) if key is None else key
     dtype = default_float()
-    cam = Camera((0.9, 1.2, 3.4), (0.0, 0.82, 0.0), (0.0, 1.0, 0.0), 40.0, width=width, height=height)
-    cloth = _cloth(cloth_rows, cloth_cols)
-    verts = cloth.vertices.reshape(-1, 3).astype(dtype)
-    normals = cloth.normals.reshape(-1, 3).astype(dtype)
-    uv = cloth.uv.reshape(-1, 2).astype(dtype)
+    eye, target, fov = CAMERA
+    cam = Camera(eye, target, (0.0, 1.0, 0.0), fov, width=width, height=height)
+    placed, joints = stage_motion(noh_dance() if motion is None else motion, duration=duration, source=motion_source)
+    costume = dress_performer(placed, joints, **(robe or {}))
+    performer = performer_rig(costume, placed, joints, body_scale(placed, joints))
     centers, us, vs = [], [], []
-    w, h = FIRE_SIZE
-    for x, z in FIRE_POSITIONS:
-        to_cam = np.asarray([float(cam.eye[0]) - x, 0.0, float(cam.eye[2]) - z])
+    w, h = FLAME_SIZE
+    for x, z in FIRE_SITES:
+        to_cam = np.asarray([eye[0] - x, 0.0, eye[2] - z])
         to_cam /= np.linalg.norm(to_cam)
         right = np.cross([0.0, 1.0, 0.0], to_cam)
-        centers.append([x, FIRE_BASE + h / 2, z])
+        centers.append([x, FLAME_BASE + h / 2, z])
         us.append(right * w / 2)
         vs.append([0.0, h / 2, 0.0])
-    keys = jax.random.split(key, len(FIRE_POSITIONS))
+    keys = jax.random.split(key, len(FIRE_SITES))
     flames = jnp.stack([fire_frames(k, frames=frames, height=flame_size[0], width=flame_size[1],
                                     intensity=fire_intensity) for k in keys]).astype(dtype)
     fires = QuadLights(jnp.asarray(centers, dtype=dtype), jnp.asarray(np.asarray(us), dtype=dtype),
                        jnp.asarray(vs, dtype=dtype), flames[:, 0])
-    labels, colours = mask_from_rgb(default_mask() if mask_rgb is None else mask_rgb)
+    robe_rgb = default_mask(ATLAS, body_rows=(robe or {}).get("rows", 30)) if mask_rgb is None else mask_rgb
+    rows = (np.arange(ATLAS) * robe_rgb.shape[0]) // ATLAS
+    cols = (np.arange(ATLAS) * robe_rgb.shape[1]) // ATLAS
+    robe_labels, robe_colours = mask_from_rgb(np.asarray(robe_rgb)[rows][:, cols])
+    body_labels, body_colours = body_page(ATLAS)
+    labels = np.concatenate([robe_labels, body_labels])
+    colours = np.concatenate([robe_colours, body_colours])
     btfs = default_btfs(size=btf_size, pyramid=pyramid) if btfs is None else btfs
     missing = [name for name in LABELS if name not in btfs]
     if missing:
         fallback = default_btfs(size=btf_size, pyramid=pyramid)
         btfs = {**{n: fallback[n] for n in missing}, **btfs}
     mats = stack_materials([btfs[name] for name in LABELS])
-    env = default_environment() if env is None else env
-    return NohScene(cam, verts, normals, uv, jnp.asarray(cloth.triangles), fires, flames,
-                    jnp.asarray(labels), jnp.asarray(colours, dtype=dtype), mats, env, float(tiles))
+    env = default_environment(irradiance=SKY_IRRADIANCE) if env is None else env
+    return NohScene(cam, fires, flames, jnp.asarray(labels), jnp.asarray(colours, dtype=dtype), mats, env,
+                    build_stage(), performer, float(tiles))
