@@ -531,7 +531,8 @@ def _staged_rounds(run, fn, theta0, ratio_cl, w, lights, model, prior, robust_ro
     observations reweighted by how badly the current parameters explain them, `_robust_weights`,
     without the dimmest ones, `_bright_enough`), then an appearance round (the slopes alone, every
     valid observation at its weight, no ambient term: the parameters that predict new lights).
-    Returns (theta, every round converged, steps)."""
+    Returns (theta, converged, steps): converged when the last geometry round and the appearance
+    round met their tolerance (earlier rounds only move the start of the next one)."""
     dt = theta0.dtype
     w_geo = _normalized_weights(w * _bright_enough(ratio_cl, w))
     geometry = Stage(jnp.ones((), dt), jnp.ones(4, dt))
@@ -544,7 +545,8 @@ def _staged_rounds(run, fn, theta0, ratio_cl, w, lights, model, prior, robust_ro
         w_r = jnp.where(last, w, _robust_weights(th, ratio_cl, w_geo, lights, model, prior, ambient=stage.ambient))
         th_r, ok_r, n_r = run(fn, th, (ratio_cl, w_r, lights, prior, stage), max_steps, rtol, atol)
         bad = ~jnp.all(jnp.isfinite(th_r))
-        return jnp.where(bad, th, th_r), ok & ok_r & ~bad, n + n_r
+        counts = i >= robust_rounds - 1   # the rounds whose result the fit keeps
+        return jnp.where(bad, th, th_r), jnp.where(counts, ok & ok_r & ~bad, ok), n + n_r
 
     return jax.lax.fori_loop(0, robust_rounds + 1, round_, (theta0, jnp.ones((), bool), jnp.zeros((), jnp.int32)))
 

@@ -104,7 +104,8 @@ def test_prior_and_ambient_against_bounded_least_squares(k, ambient):
             rows = np.stack([sw * a, sw * b, sw * ambient], axis=1)
             rows = np.concatenate([rows, [[np.sqrt(lam), 0, 0], [0, np.sqrt(lam), 0],
                                           [0, np.sqrt(float(prior.rho_weight)), 0]]])
-            rhs = np.concatenate([sw * np.asarray(ratio[c]), [0.0, 0.0, np.sqrt(float(prior.rho_weight)) * prior.rho_s[c]]])
+            rhs = np.concatenate([sw * np.asarray(ratio[c]),
+                                  [0.0, 0.0, np.sqrt(float(prior.rho_weight)) * prior.rho_s[c]]])
             sol = scipy.optimize.lsq_linear(rows, rhs, bounds=([0, 0, -np.inf], [np.inf, np.inf, np.inf]),
                                             method="bvls", tol=1e-14)
             total += 0.5 * float(np.sum((rows @ sol.x - rhs) ** 2))
