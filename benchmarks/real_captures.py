@@ -2,7 +2,7 @@
 
     python benchmarks/real_captures.py                    # every object of the DiLiGenT folder
     python benchmarks/real_captures.py --objects ball,cat
-    python benchmarks/real_captures.py --quick            # ball, every 3rd row and column: a smoke run
+    python benchmarks/real_captures.py --quick            # ball, every 3rd row and column, in process: a smoke run
 
 Data: the DiLiGenT folder at $JAXRENDER_DILIGENT, else ../shared/data/diligent beside the checkout
 (Shi et al., CVPR 2016 / TPAMI 2019; research use; read in place, never copied). Every object
@@ -129,8 +129,9 @@ def run_object(folder: Path, work: Path, *, stride: int, pipeline: bool) -> dict
     n_train = int(np.sum(mask))
     maps, cold, cold_cpu = timed(lambda: fit_maps(train, progress=False))
     out.update(heldout=heldout(maps), heldout_fit_cold_s=round(cold, 2), heldout_fit_cold_cpu_s=round(cold_cpu, 2))
-    if normals is None:
-        normals = np.asarray(fit_maps(obs, progress=False).normal)
+    if normals is None:   # --quick: the normals of the held-out fit (one compilation)
+        normals = np.asarray(maps.normal)
+        out["normals_from"] = f"{len(fitted)} lights"
     if pipeline:
         _, warm, warm_cpu = timed(lambda: fit_maps(train, progress=False))
         out.update(warm_seconds=round(warm, 2), warm_cpu_seconds=round(warm_cpu, 2),
@@ -228,7 +229,8 @@ def main() -> None:
         for name in names:
             path = Path(tmp) / f"{name}.json"
             env = dict(os.environ)
-            env.pop("JAX_COMPILATION_CACHE_DIR", None)   # compile included: no persistent cache
+            if not args.quick:
+                env.pop("JAX_COMPILATION_CACHE_DIR", None)   # compile included: no persistent cache
             subprocess.run([sys.executable, __file__, "--child", str(root / f"{name}PNG"), "--json", str(path)]
                            + (["--quick"] if args.quick else []), check=True, env=env)
             records.append(json.loads(path.read_text()))

@@ -16,7 +16,7 @@ bit-identical to an uninterrupted one. `.partial/` is removed once the BTF is co
 temporaries a killed run left behind.
 
 A robust fit (`METHODS`, the default) first estimates the capture's materials from a sample of its
-texels (`fit_materials`, `fitting.materials`; saved in `.partial/materials.npz`): each texel's lobe
+texels (`fit_materials`, `fitting.materials`; saved in `.partial/materials.json`): each texel's lobe
 then gets the prior of its material, and robust geometry rounds and an appearance round follow
 (`fitting.lm.fit_texel`). Reasoning: docs/fitting.md, "Real captures".
 """
@@ -270,6 +270,7 @@ def run_chunks(plan: ChunkPlan, checkpoint: Checkpoint | None,
 
 
 _TABLE_FIELDS = ("rho_s", "s", "log_share", "colour", "colour_spread", "noise")
+MATERIALS_FILE = "materials.json"   # the robust fit's material table in the checkpoint directory
 
 
 def table_to_numpy(table: MaterialTable) -> dict[str, np.ndarray]:
@@ -288,12 +289,12 @@ def fit_materials(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], pla
     at least MATERIAL_MIN_VALID valid observations (`fitting.materials`; the sample fitted by the
     tiles' compiled program, with a table of no priors). Saved in the checkpoint and reloaded from
     there on a resumed fit."""
-    saved = checkpoint.directory / "materials.npz" if checkpoint is not None else None
+    saved = checkpoint.directory / MATERIALS_FILE if checkpoint is not None else None
     if saved is not None and saved.is_file():
         try:
-            with np.load(saved) as data:
-                return table_from_numpy(data), json.loads(str(data["info"]))
-        except (OSError, ValueError, KeyError):
+            data = json.loads(saved.read_text())
+            return table_from_numpy({k: np.asarray(data["table"][k], np.float32) for k in _TABLE_FIELDS}), data["info"]
+        except (OSError, ValueError, KeyError, TypeError):
             pass   # unreadable: estimate again
     flat = np.asarray(n_valid).reshape(-1)
     texels = sample_indices(plan.texels[flat[plan.texels] >= MATERIAL_MIN_VALID])
@@ -310,10 +311,10 @@ def fit_materials(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], pla
         table, info = estimate_materials(ratio, weight, light_dirs, view_dir, model=model, fits=fits)
     else:
         table, info = no_materials(), {"materials": 0, "sample": 0}
-    if saved is not None:
+    if saved is not None:   # a few rows as JSON (float32 values round-trip exactly; -inf as -Infinity)
+        table_json = {k: np.asarray(v, np.float32).tolist() for k, v in table_to_numpy(table).items()}
         with atomic_path(saved) as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, info=json.dumps(info), **table_to_numpy(table))
+            tmp.write_text(json.dumps({"table": table_json, "info": info}))
     return table, info
 
 

@@ -517,6 +517,28 @@ def _robust_weights(theta, ratio_cl, w, lights, model, prior, ambient=None):
         a, b, ratio_cl = centre(w, ambient, a, b, ratio_cl)
     rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w, prior=prior)
     e2 = sum((ratio_cl[c] - rho_d[c] * a - rho_s[c] * b) ** 2 for c in range(3))
+    return _cauchy(w, e2)
+
+
+def _diffuse_weights(ratio_cl, w, lights, model, ambient):
+    """The Cauchy weights of `_robust_weights` for the lobeless fit at the photometric-stereo normal:
+    the first geometry round's, so that a bright observation is an outlier unless the rounds find
+    a lobe it is consistent with (a start fitted to it would keep it: a sharp lobe explains any one
+    observation, and the normal tilts to put its mirror direction there)."""
+    n_ps = _photometric_stereo(ratio_cl, w, lights)
+    theta = jnp.concatenate([geometry_to_theta(n_ps, 1.0, 1.0)[:2], jnp.zeros(2, ratio_cl.dtype)])
+    a, b = columns(theta, lights, model)
+    a, _, r = centre(w, ambient, a, b, ratio_cl)
+    saa = jnp.maximum(jnp.sum(w * a * a), jnp.finfo(a.dtype).tiny)
+    e2 = jnp.zeros_like(a)
+    for c in range(3):
+        rho_d = jnp.maximum(jnp.sum(w * a * r[c]) / saa, 0.0)
+        e2 = e2 + (r[c] - rho_d * a) ** 2
+    return _cauchy(w, e2)
+
+
+def _cauchy(w, e2):
+    """w / (1 + e2 / (ROBUST_SCALE^2 median(e2))) over the valid lights, normalized to mean 1."""
     valid = w > 0
     n = jnp.sum(valid)
     order = jnp.sort(jnp.where(valid, e2, jnp.inf))
@@ -528,21 +550,25 @@ def _robust_weights(theta, ratio_cl, w, lights, model, prior, ambient=None):
 def _staged_rounds(run, fn, theta0, ratio_cl, w, lights, model, prior, robust_rounds, max_steps, rtol, atol):
     """The solves of a real-capture fit, one solver body in a loop (compiled once):
     `robust_rounds` geometry rounds (every parameter, an ambient term projected out, the
-    observations reweighted by how badly the current parameters explain them, `_robust_weights`,
-    without the dimmest ones, `_bright_enough`), then an appearance round (the slopes alone, every
-    valid observation at its weight, no ambient term: the parameters that predict new lights).
+    observations reweighted by how badly the lobeless fit at the photometric-stereo normal
+    explains them in the first round, `_diffuse_weights`, and the previous round's parameters
+    in the others, `_robust_weights`, without the dimmest ones, `_bright_enough`), then an
+    appearance round (the slopes alone, every valid observation at its weight, no ambient term:
+    the parameters that predict new lights).
     Returns (theta, converged, steps): converged when the last geometry round and the appearance
     round met their tolerance (earlier rounds only move the start of the next one)."""
     dt = theta0.dtype
     w_geo = _normalized_weights(w * _bright_enough(ratio_cl, w))
     geometry = Stage(jnp.ones((), dt), jnp.ones(4, dt))
     appearance = Stage(jnp.zeros((), dt), jnp.asarray([0.0, 0.0, 1.0, 1.0], dt))
+    w_first = _diffuse_weights(ratio_cl, w_geo, lights, model, geometry.ambient)
 
     def round_(i, st):
         th, ok, n = st
         last = i == robust_rounds
         stage = jax.tree_util.tree_map(lambda a, b: jnp.where(last, a, b), appearance, geometry)
-        w_r = jnp.where(last, w, _robust_weights(th, ratio_cl, w_geo, lights, model, prior, ambient=stage.ambient))
+        w_later = _robust_weights(th, ratio_cl, w_geo, lights, model, prior, ambient=stage.ambient)
+        w_r = jnp.where(last, w, jnp.where(i == 0, w_first, w_later))
         th_r, ok_r, n_r = run(fn, th, (ratio_cl, w_r, lights, prior, stage), max_steps, rtol, atol)
         bad = ~jnp.all(jnp.isfinite(th_r))
         counts = i >= robust_rounds - 1   # the rounds whose result the fit keeps

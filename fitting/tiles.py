@@ -16,7 +16,7 @@ BTF_DIR at a time (its `.lock`).
 
 A robust fit (the default method) first estimates the capture's materials from a sample of its
 texels (`fitting.fit.fit_materials`: read from the store, fitted, clustered; saved in
-`.partial/materials.npz`): that table of a few rows is the only global state, and every tile
+`.partial/materials.json`): that table of a few rows is the only global state, and every tile
 (every Dask task) gets it.
 
 Memory: a process holds one or two tiles of observations (`chunk` x L x 16 bytes) plus the output
