@@ -25,14 +25,15 @@ from fitting.evaluate import (
 ROOT = Path(__file__).resolve().parents[1]
 STRIDE = 4
 CHUNK = 512   # both objects' chunks padded alike: one compiled program
-# Measured at STRIDE 4 with 80 of 96 lights (see the values in each entry's comment); bounds leave
-# room for other CPUs' rounding. The whole-object figures with every light: benchmarks/RESULTS.md.
+# Measured at STRIDE 4 with 80 of 96 lights (2026-11-26, Intel Xeon AVX-512); bounds ~20 % above the
+# measured figures, for other CPUs' rounding. Whole objects with every light: benchmarks/RESULTS.md.
 TOLERANCES = {
-    # normals: measured NORMALS_BALL deg (ST14 publishes 1.74 on the whole object); held-out
-    # measured HELDOUT_BALL of the Lambertian's
-    "ball": {"normals_deg": 1.74, "heldout_ratio": 0.9},
-    # normals: measured NORMALS_HARVEST deg (ST14 25.44); held-out HELDOUT_HARVEST of the Lambertian's
-    "harvest": {"normals_deg": 25.44, "heldout_ratio": 0.95},
+    # normals: measured 1.42 deg (ST14 publishes 1.74 on the whole object); held-out: measured
+    # 0.72 of the Lambertian fit's error (7.7 % vs 10.7 %)
+    "ball": {"normals_deg": 1.74, "heldout_ratio": 0.85},
+    # normals: measured 17.83 deg (ST14 25.44, PS-FCN 15.84); held-out: measured 0.59 of the
+    # Lambertian fit's (26.0 % vs 43.8 %)
+    "harvest": {"normals_deg": 20.0, "heldout_ratio": 0.7},
 }
 
 
