@@ -152,3 +152,25 @@ def test_materials_of_two_lobes():
         k = np.argmin(np.abs(np.log(sigma.mean(-1) / want_sigma)))
         np.testing.assert_allclose(sigma[k], want_sigma, rtol=0.25, err_msg=str(info))
         np.testing.assert_allclose(rho_s[k], want_rho, rtol=0.25, err_msg=str(info))
+
+
+@pytest.mark.parametrize("flag, method", [((), "robust"), (("--method", "plain"), "plain")])
+def test_fit_command_passes_the_method(tmp_path, monkeypatch, flag, method):
+    """`fitting fit --method` reaches the fit (robust by default); the fit itself is replaced here."""
+    import json
+
+    import jaxrender.app.cli.fit as fit_command
+    from jaxrender.app.cli.programs import fitting_main
+
+    seen = {}
+
+    def fake_fit_capture(source, out, **kwargs):
+        seen.update(kwargs)
+        out = tmp_path / "btf"
+        out.mkdir()
+        (out / "btf.json").write_text(json.dumps({"fit": {}}))
+        return out
+
+    monkeypatch.setattr(fit_command, "fit_capture", fake_fit_capture)
+    assert fitting_main(["fit", str(tmp_path / "capture"), "--out", str(tmp_path / "btf"), *flag]) == 0
+    assert seen["method"] == method
