@@ -18,7 +18,7 @@ temporaries a killed run left behind.
 A robust fit (`METHODS`, the default) first estimates the capture's materials from a sample of its
 texels (`fit_materials`, `fitting.materials`; saved in `.partial/materials.json`): each texel's lobe
 then gets the prior of its material, and robust geometry rounds and an appearance round follow
-(`fitting.lm.fit_texel`). Reasoning: docs/fitting.md, "Real captures".
+(`fitting.lm.fit_texel`). Reasoning: docs/fitting.md, "Real captures: the robust method".
 """
 
 from __future__ import annotations
