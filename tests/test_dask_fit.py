@@ -78,8 +78,9 @@ def test_mask_texels_are_not_fitted(setup):
     outside = MASK == 0
     assert np.all(ref["n_valid"][outside] == 0) and np.all(ref["rho_d.R"][outside] == 0)
     assert np.all(ref["n_valid"][~outside] > 0) and np.all(ref["converged"][outside] == 0)
-    # the default (robust) method's three solves per texel: measured 54 of the 55 texels converged
-    # within max_steps (the plain method's single solve: 55)
+    # the default (robust) method's three solves per texel: 54 of the 55 texels converged within
+    # max_steps when measured (before the first round's weights came from the lobeless fit; the
+    # plain method's single solve: 55); up to DASK_UNCONVERGED_MAX may miss the tolerance
     assert np.sum(ref["converged"][~outside] == 1) >= np.sum(~outside) - DASK_UNCONVERGED_MAX
 
 
