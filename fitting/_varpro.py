@@ -16,6 +16,15 @@ parameters (`theta_to_geometry`), the observations R (`3 L`, channel-major) and 
   Everything M and g need is a weighted sum over lights of products of a, b, their derivatives
   and the residuals: ~50 row sums instead of a `3L x 4` Jacobian, which XLA on CPU forms and
   multiplies several times slower.
+
+A `Prior` (optional everywhere) adds 0.5 k_rho |rho_s - mu|^2 + 0.5 k_s |(s_x, s_y) - s_mu|^2 to the
+objective: a Gaussian prior on the lobe's amplitude and log-slopes (a texel's material, see
+`fitting.materials`). The rho term changes the 2 x 2 projection (still closed form); the slope
+term adds k_s to the Gauss-Newton matrix and k_s (s - s_mu) to the gradient.
+
+`ambient` (optional everywhere, a 0/1 factor): a constant per channel is fitted with rho and
+projected out with it, by centring the observations and the columns (`centre`): light the
+model has no term for (ambient light, a diffuse that darkens toward grazing) then bends no normal.
 """
 
 from __future__ import annotations
@@ -150,6 +159,32 @@ def columns_and_derivatives(theta: Float[Array, "4"], lights: Lights, model: str
 # ---------------------------------------------------------------------------------------------
 # rho projected out
 
+class Prior(NamedTuple):
+    """Gaussian prior on a texel's lobe: amplitude `rho_s` (3) with weight `rho_weight`, log-slopes
+    `s` (2, the solver's s_x, s_y) with weight `s_weight` (weights in the cost's units: noise
+    variance / prior variance). Weights 0: no prior."""
+
+    rho_s: Float[Array, "3"]
+    rho_weight: Float[Array, ""]
+    s: Float[Array, "2"]
+    s_weight: Float[Array, ""]
+
+
+def _prior_terms(prior: Prior | None, hbr, lam):
+    """(extra weight on rho_s, shifted h_b) of the projection under `prior`."""
+    if prior is None:
+        return jnp.zeros_like(lam), hbr
+    return prior.rho_weight, hbr + prior.rho_weight * prior.rho_s
+
+
+def _prior_value(prior: Prior | None, theta, rho_s):
+    """0.5 k_rho |rho_s - mu|^2 + 0.5 k_s |s - s_mu|^2 (0 without a prior)."""
+    if prior is None:
+        return jnp.zeros((), theta.dtype)
+    dr, ds = rho_s - prior.rho_s, theta[2:] - prior.s
+    return 0.5 * prior.rho_weight * jnp.sum(dr * dr) + 0.5 * prior.s_weight * jnp.sum(ds * ds)
+
+
 def ridge_of(w: Float[Array, " L"], ridge: float = RIDGE) -> Float[Array, ""]:
     """lam of the penalty 0.5 lam |rho|^2 added to the cost: `ridge` per unit of observation
     weight (a, b are O(1): ~1e-7 of the normal equations' diagonal), plus a tiny floor.
@@ -163,13 +198,14 @@ def ridge_of(w: Float[Array, " L"], ridge: float = RIDGE) -> Float[Array, ""]:
     return ridge * jnp.sum(w) + jnp.asarray(jnp.finfo(w.dtype).tiny ** 0.5, w.dtype)
 
 
-def nnls2(saa, sab, sbb, har, hbr, lam):
-    """Per channel: argmin_{x >= 0} x^T (G + lam I) x - 2 h^T x with G = [[saa, sab], [sab, sbb]].
+def nnls2(saa, sab, sbb, har, hbr, lam, lam_s=0.0):
+    """Per channel: argmin_{x >= 0} x^T (G + diag(lam, lam + lam_s)) x - 2 h^T x with
+    G = [[saa, sab], [sab, sbb]] (`lam_s`: a prior's extra weight on rho_s, `Prior`).
 
     The closed form of a 2-variable NNLS: the unconstrained solution when it is feasible, else
     the better of the two clamped one-variable solutions. Returns (rho_d, rho_s).
     """
-    gaa, gbb = saa + lam, sbb + lam
+    gaa, gbb = saa + lam, sbb + lam + lam_s
     det = jnp.maximum(gaa * gbb - sab * sab, lam * lam)  # Cauchy-Schwarz: det >= lam^2 in exact arithmetic
     xd = (gbb * har - sab * hbr) / det
     xs = (gaa * hbr - sab * har) / det
@@ -185,6 +221,18 @@ def nnls2(saa, sab, sbb, har, hbr, lam):
     return rho_d, rho_s
 
 
+def centre(w, ambient, *rows):
+    """Rows minus `ambient` times their w-weighted means: with `ambient` = 1 a constant column (an
+    ambient term per channel, free in sign) is projected out of the fit; with 0 nothing changes."""
+    total = jnp.maximum(jnp.sum(w), jnp.finfo(w.dtype).tiny)
+
+    def one(x):
+        wx = jnp.reshape(w, (1,) * (x.ndim - 1) + w.shape) * x
+        return x - ambient * (jnp.sum(wx, axis=-1, keepdims=True) / total)
+
+    return [one(x) for x in rows]
+
+
 def _sums(a, b, ratio_cl, w):
     wa, wb = w * a, w * b
     har = jnp.stack([jnp.sum(ratio_cl[c] * wa) for c in range(3)])   # row sums: batched matvecs are slow on CPU
@@ -193,36 +241,55 @@ def _sums(a, b, ratio_cl, w):
 
 
 def project_rho_columns(a: Float[Array, " L"], b: Float[Array, " L"], ratio_cl: Float[Array, "3 L"],
-                        w: Float[Array, " L"], *, ridge: float = RIDGE) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+                        w: Float[Array, " L"], *, ridge: float = RIDGE,
+                        prior: Prior | None = None) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
     """The best non-negative (rho_d, rho_s) per channel for columns a, b (see `nnls2`, `ridge_of`)."""
     _, _, saa, sab, sbb, har, hbr = _sums(a, b, ratio_cl, w)
-    return nnls2(saa, sab, sbb, har, hbr, ridge_of(w, ridge))
+    lam = ridge_of(w, ridge)
+    lam_s, hbr = _prior_terms(prior, hbr, lam)
+    return nnls2(saa, sab, sbb, har, hbr, lam, lam_s)
 
 
 def projected_cost_offset(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"],
-                          lights: Lights, model: str) -> Float[Array, ""]:
+                          lights: Lights, model: str, prior: Prior | None = None, *,
+                          ambient=None) -> Float[Array, ""]:
+    return projected_cost_offset_and_rho_d(theta, ratio_cl, w, lights, model, prior, ambient=ambient)[0]
+
+
+def projected_cost_offset_and_rho_d(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"],
+                                    lights: Lights, model: str, prior: Prior | None = None, *,
+                                    ambient=None) -> tuple[Float[Array, ""], Float[Array, "3"]]:
     """2 * projected objective - sum w R^2 = sum_c (rho_c^T (G + lam) rho_c - 2 rho_c^T h_c), from the sums of
     one pass (no residuals): enough to rank starting points (it cancels where the fit is close,
-    so it is not the cost itself)."""
+    so it is not the cost itself). With a `prior`, its terms are included (twice, as the rest)."""
     a, b = columns(theta, lights, model)
+    if ambient is not None:
+        a, b, ratio_cl = centre(w, ambient, a, b, ratio_cl)
     _, _, saa, sab, sbb, har, hbr = _sums(a, b, ratio_cl, w)
     lam = ridge_of(w)
-    rd, rs = nnls2(saa, sab, sbb, har, hbr, lam)
-    return jnp.sum((saa + lam) * rd * rd + 2 * sab * rd * rs + (sbb + lam) * rs * rs - 2 * (rd * har + rs * hbr))
+    if prior is None:
+        rd, rs = nnls2(saa, sab, sbb, har, hbr, lam)
+        return jnp.sum((saa + lam) * rd * rd + 2 * sab * rd * rs + (sbb + lam) * rs * rs
+                       - 2 * (rd * har + rs * hbr)), rd
+    lam_s, hbr_p = _prior_terms(prior, hbr, lam)
+    rd, rs = nnls2(saa, sab, sbb, har, hbr_p, lam, lam_s)
+    data = jnp.sum((saa + lam) * rd * rd + 2 * sab * rd * rs + (sbb + lam) * rs * rs - 2 * (rd * har + rs * hbr))
+    return data + 2 * _prior_value(prior, theta, rs), rd
 
 
 def projected_objective(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"], lights: Lights,
-                        model: str):
+                        model: str, prior: Prior | None = None):
     """(objective, cost, rho_d, rho_s) at theta with the projected rho (`gauss_newton` without
     derivatives)."""
     a, b = columns(theta, lights, model)
-    rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w)
+    rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w, prior=prior)
     cost = 0.0
     for c in range(3):
         r = ratio_cl[c] - rho_d[c] * a - rho_s[c] * b
         cost = cost + jnp.sum(w * r * r)
     cost = 0.5 * cost
-    return cost + 0.5 * ridge_of(w) * jnp.sum(rho_d * rho_d + rho_s * rho_s), cost, rho_d, rho_s
+    objective = cost + 0.5 * ridge_of(w) * jnp.sum(rho_d * rho_d + rho_s * rho_s) + _prior_value(prior, theta, rho_s)
+    return objective, cost, rho_d, rho_s
 
 
 # ---------------------------------------------------------------------------------------------
@@ -238,12 +305,15 @@ class GaussNewton(NamedTuple):
 
 
 def gauss_newton(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"], lights: Lights,
-                 model: str) -> GaussNewton:
+                 model: str, prior: Prior | None = None, *, ambient=None) -> GaussNewton:
     """Cost, exact gradient and Kaufman Gauss-Newton matrix of the projected cost (module docstring)."""
     a, b, da, db = columns_and_derivatives(theta, lights, model)
+    if ambient is not None:
+        a, b, da, db, ratio_cl = centre(w, ambient, a, b, da, db, ratio_cl)
     wa, wb, saa, sab, sbb, har, hbr = _sums(a, b, ratio_cl, w)   # G and h of the projection
     lam = ridge_of(w)
-    rho_d, rho_s = nnls2(saa, sab, sbb, har, hbr, lam)
+    lam_s, hbr_p = _prior_terms(prior, hbr, lam)
+    rho_d, rho_s = nnls2(saa, sab, sbb, har, hbr_p, lam, lam_s)
     # sums of the derivative rows with the columns and with each other
     x = [da[0], da[1], None, None]   # da/ds = 0
     y = [db[0], db[1], db[2], db[3]]
@@ -267,7 +337,7 @@ def gauss_newton(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Flo
     m = sdd * sxx + sds * (sxy + sxy.T) + sss * syy
     free_d, free_s = rho_d > 0, rho_s > 0
     gab = jnp.where(free_d & free_s, sab, 0.0)   # (3,): the pair is coupled only when both are free
-    gaa, gbb = saa + lam, sbb + lam
+    gaa, gbb = saa + lam, sbb + lam + lam_s
     det = jnp.maximum(gaa * gbb - gab * gab, lam * lam)
     for c in range(3):
         cd = jnp.where(free_d[c], rho_d[c] * a_dx + rho_s[c] * a_dy, 0.0)   # (4,) coupling of rho_d_c
@@ -281,4 +351,8 @@ def gauss_newton(theta: Float[Array, "4"], ratio_cl: Float[Array, "3 L"], w: Flo
     wed = w * (rho_d[0] * r[0] + rho_d[1] * r[1] + rho_d[2] * r[2])
     wes = w * (rho_s[0] * r[0] + rho_s[1] * r[1] + rho_s[2] * r[2])
     grad = -jnp.stack([jnp.sum(wed * x[k] + wes * y[k]) if x[k] is not None else jnp.sum(wes * y[k]) for k in range(4)])
+    if prior is not None:   # the slope prior: value, gradient and curvature (the rho prior is in the projection)
+        objective = objective + _prior_value(prior, theta, rho_s)
+        grad = grad + jnp.concatenate([jnp.zeros(2, grad.dtype), prior.s_weight * (theta[2:] - prior.s)])
+        m = m + prior.s_weight * jnp.diag(jnp.asarray([0.0, 0.0, 1.0, 1.0], m.dtype))
     return GaussNewton(objective, cost, grad, 0.5 * (m + m.T), rho_d, rho_s)

@@ -14,6 +14,11 @@ resumes: chunks already there are loaded, the others fitted. Every chunk is fitt
 padded shape whatever happened before, so a run killed with SIGKILL and resumed gives maps
 bit-identical to an uninterrupted one. `.partial/` is removed once the BTF is complete, with the
 temporaries a killed run left behind.
+
+A robust fit (`METHODS`, the default) first estimates the capture's materials from a sample of its
+texels (`fit_materials`, `fitting.materials`; saved in `.partial/materials.json`): each texel's lobe
+then gets the prior of its material, and robust geometry rounds and an appearance round follow
+(`fitting.lm.fit_texel`). Reasoning: docs/fitting.md, "Real captures: the robust method".
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import functools
+import json
 import os
 import shutil
 import time
@@ -30,23 +36,42 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxrender.io import InputError, complete_level, output_lock, remove_temporaries, write_btf, write_btf_previews
+from jaxrender.io import (
+    InputError,
+    atomic_path,
+    complete_level,
+    output_lock,
+    remove_temporaries,
+    write_btf,
+    write_btf_previews,
+)
 
 from .checkpoint import Checkpoint, fingerprint
 from .hdr import ObservationCounts, Observations
-from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, SOLVERS, TexelFit, default_tolerances, fit_texels
+from .lm import DEFAULT_MAX_STEPS, DEFAULT_SOLVER, SOLVERS, MaterialTable, TexelFit, default_tolerances, fit_texels
+from .materials import estimate_materials, no_materials, sample_indices
 from .pyramid import pyramid_channels
 
 __all__ = ["fit_observations", "fit_maps", "ChunkPlan", "plan_chunks", "read_chunk", "read_texels", "fit_chunk",
            "empty_fit", "run_chunks", "fit_in_process", "assemble_maps", "observation_summary", "level0_channels",
-           "write_fit", "begin_output", "check_settings", "progress_bar", "DEFAULT_CHUNK", "TILE", "PARTIAL",
-           "MIN_VALID"]
+           "write_fit", "begin_output", "check_settings", "progress_bar", "fit_materials", "table_to_numpy",
+           "table_from_numpy", "DEFAULT_CHUNK", "TILE", "PARTIAL", "MIN_VALID", "METHODS", "DEFAULT_METHOD"]
 
 DEFAULT_CHUNK = 4096
 # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
 TILE = 32
 PARTIAL = ".partial"
 MIN_VALID = 4  # lights a texel needs for a determined fit (4 nonlinear + 2 linear parameters per channel)
+# "robust" (default, every capture): materials shared by the texels (`fitting.materials`, one global
+# pass over a sample) give each texel's lobe a prior; ROBUST_ROUNDS reweighted geometry solves and
+# an appearance solve per texel (`fitting.lm.fit_texel`). "plain": per-texel least squares (paper 004).
+METHODS = ("robust", "plain")
+DEFAULT_METHOD = "robust"
+ROBUST_ROUNDS = 2
+MATERIAL_MIN_VALID = 8  # valid lights a sampled texel needs to take part in the material pass
+_METHOD_TEXT = {"robust": "levenberg-marquardt, variable projection of rho_d, rho_s; material priors, "
+                          "robust geometry rounds with an ambient term, appearance round",
+                "plain": "levenberg-marquardt, variable projection of rho_d, rho_s"}
 
 
 def _layout(chunk: int, n_devices: int) -> tuple[int, int]:
@@ -72,16 +97,20 @@ def _tile_fit(tile: int, model: str, solver: str, max_steps: int):
     second time, 5-10x slower on CPU; `jax.shard_map`/`pmap` meet lineax's structure checks.)
     """
 
-    def fn(ratio, weight, light_dirs, view_dir):
+    def fn(ratio, weight, light_dirs, view_dir, materials):
         out = jax.lax.map(lambda rw: fit_texels(rw[0], rw[1], light_dirs, view_dir, model=model, solver=solver,
-                                                max_steps=max_steps), (ratio, weight))
+                                                max_steps=max_steps, materials=materials,
+                                                robust_rounds=ROBUST_ROUNDS if materials is not None else 0),
+                          (ratio, weight))
         return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
     return jax.jit(fn)
 
 
-def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_steps) -> TexelFit:
+def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_steps,
+               materials: MaterialTable | None = None) -> TexelFit:
     """Fit `n_devices * per_device` texels (already padded) over the local devices; flat numpy leaves.
+    `materials`: the robust method's table (None: the plain method).
 
     Float32 observations are fitted by a float32 program even where a notebook or test switched on
     x64 (optimistix's damping constants would otherwise turn into float64 and its structure check fails)."""
@@ -98,7 +127,9 @@ def _chunk_fit(ratio, weight, light_dirs, view_dir, *, tile, model, solver, max_
             w = jax.device_put(weight[share].reshape((-1, tile) + weight.shape[1:]), place)
             dirs = jax.device_put(np.asarray(light_dirs, dtype), place)
             view = jax.device_put(np.asarray(view_dir, dtype), place)
-            outs.append(fn(r, w, dirs, view))
+            table = None if materials is None else jax.device_put(
+                jax.tree.map(lambda x: np.asarray(x, dtype), materials), place)
+            outs.append(fn(r, w, dirs, view, table))
     return jax.tree.map(lambda *shares: np.concatenate([np.asarray(x) for x in shares]), *outs)
 
 
@@ -165,15 +196,15 @@ def read_chunk(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], plan: 
 
 
 def fit_chunk(ratio: np.ndarray, weight: np.ndarray, plan: ChunkPlan, index: int, light_dirs, view_dir, *,
-              model: str, solver: str, max_steps: int) -> TexelFit:
+              model: str, solver: str, max_steps: int, materials: MaterialTable | None = None) -> TexelFit:
     """Fit chunk `index` of `plan` from its observations (`read_chunk`); a `TexelFit` of flat numpy
-    leaves (the chunk's texels)."""
+    leaves (the chunk's texels). `materials`: the robust method's table (None: plain)."""
     count = plan.counts[index]
     if count != plan.padded:
         idx = np.minimum(np.arange(plan.padded), count - 1)  # pad with the last texel
         ratio, weight = ratio[idx], weight[idx]
     out = _chunk_fit(ratio, weight, light_dirs, view_dir, tile=plan.tile, model=model, solver=solver,
-                     max_steps=max_steps)
+                     max_steps=max_steps, materials=materials)
     return jax.tree.map(lambda v: v[:count], out)
 
 
@@ -183,12 +214,15 @@ def empty_fit(n: int) -> TexelFit:
     return TexelFit(rho_d=np.zeros((n, 3), np.float32), rho_s=np.zeros((n, 3), np.float32),
                     normal=np.tile(np.float32([0.0, 0.0, 1.0]), (n, 1)), sigma_x=zeros + np.float32(0.1),
                     sigma_y=zeros + np.float32(0.1), residual=zeros, cost=zeros, converged=np.zeros(n, bool),
-                    num_steps=np.zeros(n, np.int32), n_valid=np.zeros(n, np.int32))
+                    num_steps=np.zeros(n, np.int32), n_valid=np.zeros(n, np.int32),
+                    material=np.full(n, -1, np.int32))
 
 
-def check_settings(solver: str, chunk: int, max_steps: int) -> None:
+def check_settings(solver: str, chunk: int, max_steps: int, method: str = DEFAULT_METHOD) -> None:
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}: use one of {SOLVERS}")
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}: use one of {METHODS}")
     if chunk < 1 or max_steps < 1:
         raise ValueError("chunk and max_steps must be >= 1")
 
@@ -235,9 +269,58 @@ def run_chunks(plan: ChunkPlan, checkpoint: Checkpoint | None,
     return assemble_maps(results, plan)
 
 
+_TABLE_FIELDS = ("rho_s", "s", "log_share", "colour", "colour_spread", "noise")
+MATERIALS_FILE = "materials.json"   # the robust fit's material table in the checkpoint directory
+
+
+def table_to_numpy(table: MaterialTable) -> dict[str, np.ndarray]:
+    """A material table as numpy arrays (saved in `.partial/`, sent to Dask workers)."""
+    return {name: np.asarray(getattr(table, name)) for name in _TABLE_FIELDS}
+
+
+def table_from_numpy(arrays) -> MaterialTable:
+    return MaterialTable(*(jax.numpy.asarray(arrays[name]) for name in _TABLE_FIELDS))
+
+
+def fit_materials(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], plan: ChunkPlan, n_valid: np.ndarray,
+                  light_dirs, view_dir, *, solver: str, max_steps: int, model: str,
+                  checkpoint: Checkpoint | None) -> tuple[MaterialTable, dict]:
+    """The global pass of a robust fit: the material table of a sample of the plan's texels with
+    at least MATERIAL_MIN_VALID valid observations (`fitting.materials`; the sample fitted by the
+    tiles' compiled program, with a table of no priors). Saved in the checkpoint and reloaded from
+    there on a resumed fit."""
+    saved = checkpoint.directory / MATERIALS_FILE if checkpoint is not None else None
+    if saved is not None and saved.is_file():
+        try:
+            data = json.loads(saved.read_text())
+            return table_from_numpy({k: np.asarray(data["table"][k], np.float32) for k in _TABLE_FIELDS}), data["info"]
+        except (OSError, ValueError, KeyError, TypeError):
+            pass   # unreadable: estimate again
+    flat = np.asarray(n_valid).reshape(-1)
+    texels = sample_indices(plan.texels[flat[plan.texels] >= MATERIAL_MIN_VALID])
+    if texels.size:
+        ratio, weight = read_texels(read, texels, window=max(plan.padded, 1))
+        n = int(texels.size)
+        starts = tuple(range(0, n, plan.padded))
+        sample = ChunkPlan((1, n), np.arange(n), starts, tuple(min(plan.padded, n - s) for s in starts), plan.tile,
+                           plan.padded)
+        parts = [fit_chunk(ratio[s:s + c], weight[s:s + c], sample, i, light_dirs, view_dir, model=model,
+                           solver=solver, max_steps=max_steps, materials=no_materials())
+                 for i, (s, c) in enumerate(zip(sample.starts, sample.counts))]
+        fits = jax.tree.map(lambda *p: np.concatenate(p), *parts)
+        table, info = estimate_materials(ratio, weight, light_dirs, view_dir, model=model, fits=fits)
+    else:
+        table, info = no_materials(), {"materials": 0, "sample": 0}
+    if saved is not None:   # a few rows as JSON (float32 values round-trip exactly; -inf as -Infinity)
+        table_json = {k: np.asarray(v, np.float32).tolist() for k, v in table_to_numpy(table).items()}
+        with atomic_path(saved) as tmp:
+            tmp.write_text(json.dumps({"table": table_json, "info": info}))
+    return table, info
+
+
 def fit_in_process(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], plan: ChunkPlan,
                    checkpoint: Checkpoint | None, light_dirs, view_dir, *, solver: str, max_steps: int, model: str,
-                   prefetch: bool = False):
+                   prefetch: bool = False, materials: MaterialTable | None = None):
     """`fit_todo` of `run_chunks` for this process: each chunk read (the next one read by a thread
     meanwhile when `prefetch`), fitted and saved in turn."""
 
@@ -253,7 +336,7 @@ def fit_in_process(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], pl
                 if reader is not None and k + 1 < len(todo):
                     future = reader.submit(load, todo[k + 1])
                 fit = fit_chunk(*data, plan, i, light_dirs, view_dir, model=model, solver=solver,
-                                max_steps=max_steps)
+                                max_steps=max_steps, materials=materials)
                 if checkpoint is not None:
                     checkpoint.save(i, fit)
                 yield i, fit
@@ -267,17 +350,27 @@ def fit_in_process(read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], pl
 def fit_maps(obs: Observations, *, solver: str = DEFAULT_SOLVER, chunk: int = DEFAULT_CHUNK,
              max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal",
              partial_dir: str | os.PathLike | None = None, progress: bool | None = None,
-             on_chunk: Callable[[int], object] | None = None) -> TexelFit:
+             on_chunk: Callable[[int], object] | None = None, method: str = DEFAULT_METHOD) -> TexelFit:
     """Fit every texel of `Observations`; a `TexelFit` of `H W ...` numpy maps.
 
+    `method`: "robust" (default; materials shared by the texels, robust geometry and appearance
+    rounds: `METHODS`) or "plain" (per-texel least squares).
     `partial_dir`: checkpoint finished chunks there and reuse the ones already present.
     `progress`: None = a tqdm bar on a terminal only, False = never, True = always.
     """
-    check_settings(solver, chunk, max_steps)
+    return _fit_maps(obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model, partial_dir=partial_dir,
+                     progress=progress, on_chunk=on_chunk, method=method)[0]
+
+
+def _fit_maps(obs: Observations, *, solver, chunk, max_steps, model, partial_dir, progress, on_chunk=None,
+              method=DEFAULT_METHOD) -> tuple[TexelFit, dict]:
+    """`fit_maps` and the material pass's info (empty for the plain method)."""
+    check_settings(solver, chunk, max_steps, method)
     h, w = obs.size
     ratio = np.asarray(obs.ratio).reshape(h * w, obs.n_lights, 3)
     weight = np.asarray(obs.weight).reshape(h * w, obs.n_lights)
-    settings = {"solver": solver, "chunk": chunk, "max_steps": max_steps, "model": model, "dtype": str(ratio.dtype)}
+    settings = {"solver": solver, "chunk": chunk, "max_steps": max_steps, "model": model, "dtype": str(ratio.dtype),
+                "method": method}
     mask = None if obs.mask is None else np.asarray(obs.mask, bool)
     checkpoint = None
     if partial_dir is not None:  # the inputs' identity: directions, the first light of every texel, the mask
@@ -285,9 +378,17 @@ def fit_maps(obs: Observations, *, solver: str = DEFAULT_SOLVER, chunk: int = DE
             settings, np.asarray(obs.light_dirs), np.asarray(obs.view_dir), np.asarray(ratio[:, :1]), str(ratio.shape),
             np.ones((h, w), bool) if mask is None else mask))
     plan = plan_chunks((h, w), chunk, mask)
-    fit_todo = fit_in_process(lambda s, c: (ratio[s:s + c], weight[s:s + c]), plan, checkpoint, obs.light_dirs,
-                              obs.view_dir, solver=solver, max_steps=max_steps, model=model)
-    return run_chunks(plan, checkpoint, fit_todo, progress=progress, on_chunk=on_chunk)
+
+    def read(s, c):
+        return ratio[s:s + c], weight[s:s + c]
+
+    table, info = None, {}
+    if method == "robust":
+        table, info = fit_materials(read, plan, np.sum(weight > 0, axis=1), obs.light_dirs, obs.view_dir,
+                                    solver=solver, max_steps=max_steps, model=model, checkpoint=checkpoint)
+    fit_todo = fit_in_process(read, plan, checkpoint, obs.light_dirs, obs.view_dir, solver=solver,
+                              max_steps=max_steps, model=model, materials=table)
+    return run_chunks(plan, checkpoint, fit_todo, progress=progress, on_chunk=on_chunk), info
 
 
 def observation_summary(counts: ObservationCounts, mask: np.ndarray | None, source) -> dict:
@@ -341,13 +442,14 @@ def begin_output(btf_dir: Path) -> None:
 
 def write_fit(btf_dir: Path, maps: TexelFit, counts: ObservationCounts, *, solver: str, chunk: int, max_steps: int,
               model: str, pyramid: bool, seconds: float, cpu_seconds: float | None = None,
-              meta: dict | None = None, mask: np.ndarray | None = None) -> Path:
+              meta: dict | None = None, mask: np.ndarray | None = None, method: str = DEFAULT_METHOD,
+              materials: dict | None = None) -> Path:
     """Previews of level 0, then level 0 and the EM pyramid of fitted maps with `btf.json` last (it
     appears only once every level is written); removes `.partial/` and any temporaries."""
     level0 = level0_channels(maps, counts, mask)
     inside = np.ones(np.shape(maps.sigma_x), bool) if mask is None else np.asarray(mask, bool)
     rtol, atol = default_tolerances(np.float32)  # the fit always sees float32 observations
-    info = {"fit": {"solver": solver, "method": "levenberg-marquardt, variable projection of rho_d, rho_s",
+    info = {"fit": {"solver": solver, "method": _METHOD_TEXT[method],
                     "chunk": chunk, "max_steps": max_steps, "rtol": rtol, "atol": atol,
                     "devices": jax.local_device_count(),
                     "converged_fraction": float(np.mean(maps.converged[inside])) if inside.any() else 0.0,
@@ -356,6 +458,8 @@ def write_fit(btf_dir: Path, maps: TexelFit, counts: ObservationCounts, *, solve
                     "seconds": round(seconds, 3), "observations": observation_summary(counts, mask, btf_dir)}}
     if cpu_seconds is not None:  # this process's CPU time (robust to a shared machine's load)
         info["fit"]["cpu_seconds"] = round(cpu_seconds, 3)
+    if materials:
+        info["fit"]["materials"] = materials
     info.update(meta or {})
     with output_lock(btf_dir):
         write_btf_previews(btf_dir, level0)
@@ -375,7 +479,8 @@ def write_fit(btf_dir: Path, maps: TexelFit, counts: ObservationCounts, *, solve
 
 def fit_observations(obs: Observations, btf_dir: str | os.PathLike, *, solver: str = DEFAULT_SOLVER,
                      chunk: int = DEFAULT_CHUNK, max_steps: int = DEFAULT_MAX_STEPS, model: str = "reciprocal",
-                     pyramid: bool = True, progress: bool | None = None, meta: dict | None = None) -> Path:
+                     pyramid: bool = True, progress: bool | None = None, meta: dict | None = None,
+                     method: str = DEFAULT_METHOD) -> Path:
     """Fit in-memory `Observations` into the BTF directory `btf_dir` (checkpointed and resumable; its
     lock held throughout)."""
     btf_dir = Path(btf_dir)
@@ -386,8 +491,8 @@ def fit_observations(obs: Observations, btf_dir: str | os.PathLike, *, solver: s
     with output_lock(btf_dir):
         begin_output(btf_dir)
         t0, c0 = time.perf_counter(), time.process_time()
-        maps = fit_maps(obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
-                        partial_dir=btf_dir / PARTIAL, progress=progress)
+        maps, materials = _fit_maps(obs, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
+                                    partial_dir=btf_dir / PARTIAL, progress=progress, method=method)
         return write_fit(btf_dir, maps, obs.counts, solver=solver, chunk=chunk, max_steps=max_steps, model=model,
                          pyramid=pyramid, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0,
-                         meta=dict(meta or {}), mask=mask)
+                         meta=dict(meta or {}), mask=mask, method=method, materials=materials)

@@ -8,6 +8,7 @@ brightest-highlight starts. The parametrization, the objective and the starts: d
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -22,6 +23,8 @@ from ._varpro import (
     S_MAX,
     S_MIN,
     Lights,
+    Prior,
+    centre,
     columns,
     columns_from_frame,
     gauss_newton,
@@ -29,10 +32,11 @@ from ._varpro import (
     lights_of,
     project_rho_columns,
     projected_cost_offset,
+    projected_cost_offset_and_rho_d,
     theta_to_geometry,
 )
 
-__all__ = ["TexelFit", "SOLVERS", "fit_texels", "fit_texel", "initial_theta", "theta_to_geometry",
+__all__ = ["TexelFit", "MaterialTable", "SOLVERS", "fit_texels", "fit_texel", "initial_theta", "theta_to_geometry",
            "geometry_to_theta", "basis", "project_rho", "texel_cost", "texel_residuals",
            "default_tolerances", "DEFAULT_SOLVER", "S_MIN", "S_MAX", "SIGMA_STARTS"]
 
@@ -56,10 +60,53 @@ class TexelFit(eqx.Module):
     converged: Bool[Array, "*T"]   # the solver met its tolerance or fitted exactly (and the texel had observations)
     num_steps: Int[Array, "*T"]
     n_valid: Int[Array, "*T"]
+    material: Int[Array, "*T"]     # the row of the `MaterialTable` whose prior the texel took (-1: none)
 
     def texel(self) -> BTFTexel:
         """The fit as a one-lobe `BTFTexel` (for `jaxrender.brdf.reflectance` / rendering)."""
         return BTFTexel.single(self.rho_d, self.rho_s, self.normal, self.sigma_x, self.sigma_y)
+
+
+# The priors a `MaterialTable` gives a texel (one setting for every capture): log-slopes within
+# TAU_LOG_SLOPE of the material's (a factor e^0.35 = 1.4 at one standard deviation), rho_s within
+# TAU_RHO_REL of the material's plus TAU_RHO_FLOOR of the texel's RMS observation (so a material
+# without a lobe still lets a texel's lobe through where its data pin it).
+TAU_LOG_SLOPE = 0.35
+TAU_RHO_REL = 0.35
+TAU_RHO_FLOOR = 0.05
+DIM_FRACTION = 0.08
+ROBUST_SCALE = 2.5  # Cauchy weights: an observation ROBUST_SCALE times the median residual off weighs 1/2
+COLOUR_EPS = 1e-3   # log(rho_d + eps): the colour a texel's material is recognised by
+
+
+class MaterialTable(eqx.Module):
+    """Materials shared by the texels of a capture (estimated by `fitting.materials`): per row
+    the centre of a Gaussian prior on a texel's lobe, and the capture's noise level.
+
+    A texel fitted with a table takes the prior of the row that explains its start best (the
+    MAP class: projected objective plus the row's log share); the prior's weights are the noise
+    variance (`noise` times the texel's mean squared observation) over the prior's variance.
+    Rows with `log_share` = -inf are unused (tables are padded to one shape)."""
+
+    rho_s: Float[Array, "M 3"]
+    s: Float[Array, "M 2"]         # the solver's log-slopes (`geometry_to_theta`) of the material's lobe
+    log_share: Float[Array, " M"]  # log of the fraction of the sample's texels in the material
+    colour: Float[Array, "M 3"]    # mean log(rho_d + COLOUR_EPS) of the material's texels
+    colour_spread: Float[Array, " M"]   # their standard deviation (per channel, pooled)
+    noise: Float[Array, ""]        # residual variance of the sample's fits / their mean squared observation
+
+    @property
+    def size(self) -> int:
+        return int(self.rho_s.shape[0])
+
+
+def _material_priors(table: MaterialTable, mean_sq: Float[Array, ""]) -> Prior:
+    """The `M` priors of a table for a texel of mean squared observation `mean_sq` (stacked)."""
+    var = table.noise * mean_sq
+    tau_rho = TAU_RHO_REL * jnp.mean(table.rho_s, axis=-1) + TAU_RHO_FLOOR * jnp.sqrt(mean_sq)
+    rho_weight = var / jnp.maximum(tau_rho * tau_rho, jnp.finfo(mean_sq.dtype).tiny)
+    s_weight = jnp.broadcast_to(var / TAU_LOG_SLOPE**2, rho_weight.shape)
+    return Prior(table.rho_s, rho_weight, table.s, s_weight)
 
 
 def default_tolerances(dtype) -> tuple[float, float]:
@@ -153,6 +200,28 @@ def _chol_solve(a, b):
     return _forward_sub(low.T[::-1, ::-1], _forward_sub(low, b)[::-1])[::-1]
 
 
+class Stage(NamedTuple):
+    """What a solve of a real-capture fit (`fit_texel`'s rounds) fits: `ambient` 1/0 (a constant
+    per channel projected out, `fitting._varpro.centre`) and `free` (4: 1 where the parameter
+    moves, 0 where it is held)."""
+
+    ambient: Float[Array, ""]
+    free: Float[Array, "4"]
+
+
+def _staged(gn, stage: Stage | None):
+    """(objective, gradient, Gauss-Newton matrix) with the held parameters' rows and columns of
+    the matrix replaced by the identity and their gradient by 0: a damped step leaves them."""
+    if stage is None:
+        return gn.objective, gn.grad, gn.matrix
+    f = stage.free
+    return gn.objective, f * gn.grad, jnp.outer(f, f) * gn.matrix + jnp.diag(1.0 - f)
+
+
+def _ambient(stage: Stage | None):
+    return None if stage is None else stage.ambient
+
+
 def _compress(theta, args, model):
     """(r, J): a 5-residual problem with the same value and Gauss-Newton model as the projected fit.
 
@@ -163,14 +232,13 @@ def _compress(theta, args, model):
     their `3L x 4` Jacobian are replaced by 5 numbers and a 4 x 4 triangle.) M is lifted by 1e-7 of
     its mean diagonal to stay definite where a parameter has no effect (a black texel).
     """
-    ratio_cl, w, lights = args
-    gn = gauss_newton(theta, ratio_cl, w, lights, model)
-    m = gn.matrix
+    ratio_cl, w, lights, prior, stage = args
+    objective, grad, m = _staged(gauss_newton(theta, ratio_cl, w, lights, model, prior, ambient=_ambient(stage)), stage)
     dt = m.dtype
     lift = 1e-7 * jnp.trace(m) / 4 + jnp.finfo(dt).tiny ** 0.5
     low = _cholesky(m + lift * jnp.eye(4, dtype=dt))
-    r_lin = _forward_sub(low, gn.grad)
-    two_c = 2 * gn.objective
+    r_lin = _forward_sub(low, grad)
+    two_c = 2 * objective
     lin2 = jnp.sum(r_lin * r_lin)
     # |L^-1 g|^2 <= 2c in exact arithmetic (a projection of the residual); keep 0.5 |r|^2 = c under rounding
     r_lin = r_lin * jnp.where(lin2 > two_c, jnp.sqrt(two_c / jnp.where(lin2 > 0, lin2, 1.0)), 1.0)
@@ -242,18 +310,58 @@ def initial_theta(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_
                           lights_of(jnp.asarray(light_dirs), jnp.asarray(view_dir)), model)
 
 
-def _initial_theta(ratio_cl, w, lights, model):
-    dt = ratio_cl.dtype
+def _start_normals(ratio_cl, w, lights):
+    """The photometric-stereo normal and the half vector of the brightest observation."""
     n_ps = _photometric_stereo(ratio_cl, w, lights)
     y = jnp.where(w > 0, ratio_cl[0] + ratio_cl[1] + ratio_cl[2], -jnp.inf)
     brightest = jnp.argmax(y)
     n_peak = normalize(jnp.stack([c[brightest] for c in lights.h]))  # the half vector of the brightest light
-    n_peak = jnp.where(n_peak[2] > 0.05, n_peak, n_ps)
+    return n_ps, jnp.where(n_peak[2] > 0.05, n_peak, n_ps)
+
+
+def _material_start(ratio_cl, w, lights, model, table: MaterialTable, ambient=None):
+    """(theta0, prior, row) of a texel fitted with a material table (`MaterialTable`).
+
+    Each row's lobe at the better of the two start normals is scored by its projected objective
+    under the row's prior plus the noise variance times -log(share) (a MAP class); the best row's
+    prior is the texel's. The start is the best, under that prior, of the rows' lobes and the
+    generic 3 x 3 slope grid (`_initial_theta`)."""
+    dt = ratio_cl.dtype
+    sq = ratio_cl[0] ** 2 + ratio_cl[1] ** 2 + ratio_cl[2] ** 2
+    mean_sq = jnp.sum(w * sq) / (3 * jnp.maximum(jnp.sum(w), 1e-30))
+    priors = _material_priors(table, mean_sq)
+    normals = jnp.stack(_start_normals(ratio_cl, w, lights))
+
+    def row_score(prior, colour, spread):
+        def at(n):
+            th = jnp.concatenate([geometry_to_theta(n, 1.0, 1.0)[:2], prior.s])
+            score, rho_d = projected_cost_offset_and_rho_d(th, ratio_cl, w, lights, model, prior, ambient=ambient)
+            d = (jnp.log(rho_d + COLOUR_EPS) - colour) / spread
+            # the Gaussian colour likelihood of the material (negative log, up to a constant)
+            return th, score, 0.5 * jnp.sum(d * d) + 3 * jnp.log(spread)
+        ths, sc, nll = jax.vmap(at)(normals)
+        k = jnp.argmin(sc)
+        return ths[k], sc[k], nll[k]
+
+    thetas, scores, colour_nll = jax.vmap(row_score)(priors, table.colour, table.colour_spread)
+    var = table.noise * mean_sq
+    total = jnp.where(jnp.isfinite(table.log_share), scores + 2 * var * (colour_nll - table.log_share), jnp.inf)
+    row = jnp.argmin(total)
+    prior = jax.tree_util.tree_map(lambda x: x[row], priors)
+    generic = _initial_theta(ratio_cl, w, lights, model, prior=prior, normals=normals, ambient=ambient)
+    cand = jnp.concatenate([thetas, generic[None]])
+    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model, prior, ambient=ambient))(cand)
+    score = jnp.where(jnp.concatenate([jnp.isfinite(table.log_share), jnp.ones(1, bool)]), score, jnp.inf)
+    return cand[jnp.argmin(score)].astype(dt), prior, row.astype(jnp.int32)
+
+
+def _initial_theta(ratio_cl, w, lights, model, prior: Prior | None = None, normals=None, ambient=None):
+    dt = ratio_cl.dtype
+    normals = jnp.stack(_start_normals(ratio_cl, w, lights)) if normals is None else normals
     sig = jnp.asarray(SIGMA_STARTS, dt)
-    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model))
+    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model, prior, ambient=ambient))
     # the better normal at the middle slopes, then the 3 x 3 slopes with that normal
     mid = sig[len(SIGMA_STARTS) // 2]
-    normals = jnp.stack([n_ps, n_peak])
     normal = normals[jnp.argmin(score(jax.vmap(lambda n: geometry_to_theta(n, mid, mid))(normals)))]
     sx, sy = jnp.meshgrid(sig, sig, indexing="ij")
     cand = jax.vmap(lambda a, b: geometry_to_theta(normal, a, b))(sx.reshape(-1), sy.reshape(-1))
@@ -354,51 +462,143 @@ def _solve_native(fn, theta0, args, max_steps, rtol, atol):
     precision (a stationary point).
     """
     dt = theta0.dtype
-    ratio_cl, w, lights = args
+    ratio_cl, w, lights, prior, stage = args
 
     def linearized(theta):
-        gn = gauss_newton(theta, ratio_cl, w, lights, fn.model)
-        return gn.objective, gn.matrix, gn.grad
+        objective, grad, matrix = _staged(gauss_newton(theta, ratio_cl, w, lights, fn.model, prior,
+                                                       ambient=_ambient(stage)), stage)
+        return objective, matrix, grad
 
-    c0, a0, g0 = linearized(theta0)
-    lam0 = 1e-6 * jnp.max(jnp.diagonal(a0)) + jnp.finfo(dt).tiny ** 0.5
+    # The loop's first pass evaluates the start itself (d = 0, accepted, not counted as a step):
+    # one copy of the linearization in the compiled program.
     two = jnp.asarray(2.0, dt)
 
     def cond(st):
         return (st["step"] < max_steps) & ~st["done"]
 
     def body(st):
-        theta, cost, a, g, lam, nu = st["theta"], st["cost"], st["a"], st["g"], st["lam"], st["nu"]
-        d = _chol_solve(a + lam * jnp.eye(4, dtype=dt), -g)
+        theta, cost, a, g, lam, nu, first = st["theta"], st["cost"], st["a"], st["g"], st["lam"], st["nu"], st["first"]
+        d = jnp.where(first, 0.0, _chol_solve(a + lam * jnp.eye(4, dtype=dt), -g))
         t_new = theta + d
         c_new, a_new, g_new = linearized(t_new)
         pred = 0.5 * jnp.dot(d, lam * d - g)  # predicted reduction of the linear model (> 0)
         actual = cost - c_new
         ratio = actual / jnp.maximum(pred, jnp.finfo(dt).tiny)
-        accept = (ratio > 0) & jnp.isfinite(c_new)
+        accept = first | ((ratio > 0) & jnp.isfinite(c_new))
         small_step = jnp.all(jnp.abs(d) <= atol + rtol * jnp.abs(theta))
         small_df = jnp.abs(actual) <= atol + rtol * cost
         # a rejected step that could gain at most a rounding-level change of the cost: the cost is
         # at its minimum up to rounding (in float32 the cost is only known to ~1e-6 relative)
         stalled = ~accept & (pred <= _rounding_floor(dt, rtol) * cost)
-        done = jnp.where(accept, small_step & small_df, stalled)
+        done = ~first & jnp.where(accept, small_step & small_df, stalled)
         lam_acc = lam * jnp.maximum(1 / 3, 1 - (2 * ratio - 1) ** 3)
+        lam_first = 1e-6 * jnp.max(jnp.diagonal(a_new)) + jnp.finfo(dt).tiny ** 0.5
         return {"theta": jnp.where(accept, t_new, theta), "cost": jnp.where(accept, c_new, cost),
                 "a": jnp.where(accept, a_new, a), "g": jnp.where(accept, g_new, g),
-                "lam": jnp.where(accept, lam_acc, lam * nu), "nu": jnp.where(accept, two, nu * 2),
-                "step": st["step"] + 1, "done": done}
+                "lam": jnp.where(first, lam_first, jnp.where(accept, lam_acc, lam * nu)),
+                "nu": jnp.where(accept, two, nu * 2), "step": st["step"] + jnp.where(first, 0, 1).astype(jnp.int32),
+                "done": done, "first": jnp.zeros((), bool)}
 
-    st0 = {"theta": theta0, "cost": c0, "a": a0, "g": g0, "lam": lam0, "nu": two,
-           "step": jnp.zeros((), jnp.int32), "done": jnp.zeros((), bool)}
+    st0 = {"theta": theta0, "cost": jnp.asarray(jnp.inf, dt), "a": jnp.eye(4, dtype=dt), "g": jnp.zeros(4, dt),
+           "lam": jnp.ones((), dt), "nu": two, "step": jnp.zeros((), jnp.int32), "done": jnp.zeros((), bool),
+           "first": jnp.ones((), bool)}
     st = jax.lax.while_loop(cond, body, st0)
     return st["theta"], st["done"], st["step"]
+
+
+def _robust_weights(theta, ratio_cl, w, lights, model, prior, ambient=None):
+    """Weights of an iteratively reweighted fit (Cauchy): w_l / (1 + (e_l / (ROBUST_SCALE m))^2),
+    e_l the RMS residual of light l over the channels at the fit `theta`, m the median of e over
+    the valid lights; normalized to mean 1 over them. Shadows the model cannot cast, highlights
+    it cannot shape and interreflections weigh little; a capture the model explains keeps
+    nearly uniform weights."""
+    a, b = columns(theta, lights, model)
+    if ambient is not None:
+        a, b, ratio_cl = centre(w, ambient, a, b, ratio_cl)
+    rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w, prior=prior)
+    e2 = sum((ratio_cl[c] - rho_d[c] * a - rho_s[c] * b) ** 2 for c in range(3))
+    return _cauchy(w, e2)
+
+
+def _diffuse_weights(ratio_cl, w, lights, model, ambient):
+    """The Cauchy weights of `_robust_weights` for the lobeless fit at the photometric-stereo normal:
+    the first geometry round's, so that a bright observation is an outlier unless the rounds find
+    a lobe it is consistent with (a start fitted to it would keep it: a sharp lobe explains any one
+    observation, and the normal tilts to put its mirror direction there)."""
+    n_ps = _photometric_stereo(ratio_cl, w, lights)
+    theta = jnp.concatenate([geometry_to_theta(n_ps, 1.0, 1.0)[:2], jnp.zeros(2, ratio_cl.dtype)])
+    a, b = columns(theta, lights, model)
+    a, _, r = centre(w, ambient, a, b, ratio_cl)
+    saa = jnp.maximum(jnp.sum(w * a * a), jnp.finfo(a.dtype).tiny)
+    e2 = jnp.zeros_like(a)
+    for c in range(3):
+        rho_d = jnp.maximum(jnp.sum(w * a * r[c]) / saa, 0.0)
+        e2 = e2 + (r[c] - rho_d * a) ** 2
+    return _cauchy(w, e2)
+
+
+def _cauchy(w, e2):
+    """w / (1 + e2 / (ROBUST_SCALE^2 median(e2))) over the valid lights, normalized to mean 1."""
+    valid = w > 0
+    n = jnp.sum(valid)
+    order = jnp.sort(jnp.where(valid, e2, jnp.inf))
+    med = order[jnp.maximum((n - 1) // 2, 0)]
+    med = jnp.where(jnp.isfinite(med) & (med > 0), med, 1.0)
+    return _normalized_weights(w / (1.0 + e2 / (ROBUST_SCALE**2 * med)))
+
+
+def _staged_rounds(run, fn, theta0, ratio_cl, w, lights, model, prior, robust_rounds, max_steps, rtol, atol):
+    """The solves of a real-capture fit, one solver body in a loop (compiled once):
+    `robust_rounds` geometry rounds (every parameter, an ambient term projected out, the
+    observations reweighted by how badly the lobeless fit at the photometric-stereo normal
+    explains them in the first round, `_diffuse_weights`, and the previous round's parameters
+    in the others, `_robust_weights`, without the dimmest ones, `_bright_enough`), then an
+    appearance round (the slopes alone, every valid observation at its weight, no ambient term:
+    the parameters that predict new lights).
+    Returns (theta, converged, steps): converged when the last geometry round and the appearance
+    round met their tolerance (earlier rounds only move the start of the next one)."""
+    dt = theta0.dtype
+    w_geo = _normalized_weights(w * _bright_enough(ratio_cl, w))
+    geometry = Stage(jnp.ones((), dt), jnp.ones(4, dt))
+    appearance = Stage(jnp.zeros((), dt), jnp.asarray([0.0, 0.0, 1.0, 1.0], dt))
+    w_first = _diffuse_weights(ratio_cl, w_geo, lights, model, geometry.ambient)
+
+    def round_(i, st):
+        th, ok, n = st
+        last = i == robust_rounds
+        stage = jax.tree_util.tree_map(lambda a, b: jnp.where(last, a, b), appearance, geometry)
+        w_later = _robust_weights(th, ratio_cl, w_geo, lights, model, prior, ambient=stage.ambient)
+        w_r = jnp.where(last, w, jnp.where(i == 0, w_first, w_later))
+        th_r, ok_r, n_r = run(fn, th, (ratio_cl, w_r, lights, prior, stage), max_steps, rtol, atol)
+        bad = ~jnp.all(jnp.isfinite(th_r))
+        counts = i >= robust_rounds - 1   # the rounds whose result the fit keeps
+        return jnp.where(bad, th, th_r), jnp.where(counts, ok & ok_r & ~bad, ok), n + n_r
+
+    return jax.lax.fori_loop(0, robust_rounds + 1, round_, (theta0, jnp.ones((), bool), jnp.zeros((), jnp.int32)))
+
+
+def _bright_enough(ratio_cl, w):
+    """1 where an observation's luminance reaches DIM_FRACTION of the texel's upper quartile, else 0:
+    the dimmest observations (cast and attached shadows, the terminator, ambient light) carry
+    little of the geometry and much of what the model cannot explain."""
+    y = ratio_cl[0] + ratio_cl[1] + ratio_cl[2]
+    valid = w > 0
+    n = jnp.sum(valid)
+    order = jnp.sort(jnp.where(valid, y, jnp.inf))
+    q75 = order[jnp.clip((3 * n) // 4, 0, y.shape[0] - 1)]
+    q75 = jnp.where(jnp.isfinite(q75), q75, 0.0)
+    keep = y >= DIM_FRACTION * q75
+    return jnp.where(jnp.sum(valid & keep) >= 8, keep, True).astype(w.dtype)
 
 
 def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs: Float[Array, "L 3"],
               view_dir: Float[Array, "3"], *, model: str = "reciprocal", solver: str = DEFAULT_SOLVER,
               max_steps: int = DEFAULT_MAX_STEPS, rtol: float | None = None, atol: float | None = None,
-              theta0: Float[Array, "4"] | None = None) -> TexelFit:
-    """Fit one texel (not jitted; `fit_texels` is the jitted, vmapped version)."""
+              theta0: Float[Array, "4"] | None = None, materials: MaterialTable | None = None,
+              robust_rounds: int = 0) -> TexelFit:
+    """Fit one texel (not jitted; `fit_texels` is the jitted, vmapped version). `materials`: fit
+    under the prior of the texel's material (`MaterialTable`); None: no prior. `robust_rounds`:
+    reweight the observations by their residuals and solve again, this many times (`_robust_weights`)."""
     if model not in MODELS:
         raise ValueError(f"unknown model {model!r}: use one of {MODELS}")
     if solver not in SOLVERS:
@@ -416,16 +616,26 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
     w = _normalized_weights(weight)
     n_valid = jnp.sum(w > 0)
     lights = lights_of(light_dirs, view_dir)
-    if theta0 is None:
-        theta0 = _initial_theta(ratio_cl, w, lights, model)
-    args = (ratio_cl, w, lights)
+    prior, row = None, jnp.asarray(-1, jnp.int32)
+    ambient = jnp.ones((), dt) if robust_rounds else None
+    if materials is not None:
+        start, prior, row = _material_start(ratio_cl, w, lights, model, materials, ambient=ambient)
+        theta0 = start if theta0 is None else theta0
+    elif theta0 is None:
+        theta0 = _initial_theta(ratio_cl, w, lights, model, ambient=ambient)
     run = {"optimistix": _solve_optimistix, "jaxopt": _solve_jaxopt, "native": _solve_native}[solver]
-    theta, ok, steps = run(_VarProResidual(model), theta0, args, max_steps, rtol, atol)
-    bad = ~jnp.all(jnp.isfinite(theta))
-    theta = jnp.where(bad, theta0, theta)
+    if robust_rounds:
+        theta, ok, steps = _staged_rounds(run, _VarProResidual(model), theta0, ratio_cl, w, lights, model, prior,
+                                          robust_rounds, max_steps, rtol, atol)
+        bad = jnp.zeros((), bool)
+    else:
+        theta, ok, steps = run(_VarProResidual(model), theta0, (ratio_cl, w, lights, prior, None), max_steps, rtol,
+                               atol)
+        bad = ~jnp.all(jnp.isfinite(theta))
+        theta = jnp.where(bad, theta0, theta)
     normal, sx, sy = theta_to_geometry(theta)
     a, b = columns(theta, lights, model)
-    rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w)
+    rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w, prior=prior)
     diff = [ratio_cl[c] - rho_d[c] * a - rho_s[c] * b for c in range(3)]
     sq_l = diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]
     cost = 0.5 * jnp.sum(w * sq_l)
@@ -438,14 +648,15 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
     converged = ((ok & ~bad) | exact) & (n_valid > 0)
     return TexelFit(rho_d=rho_d, rho_s=rho_s, normal=normal, sigma_x=sx, sigma_y=sy, residual=residual,
                     cost=cost, converged=converged, num_steps=jnp.asarray(steps, jnp.int32),
-                    n_valid=n_valid.astype(jnp.int32))
+                    n_valid=n_valid.astype(jnp.int32), material=row)
 
 
-@functools.partial(jax.jit, static_argnames=("model", "solver", "max_steps", "rtol", "atol"))
+@functools.partial(jax.jit, static_argnames=("model", "solver", "max_steps", "rtol", "atol", "robust_rounds"))
 def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_dirs: Float[Array, "L 3"],
                view_dir: Float[Array, "3"], *, model: str = "reciprocal", solver: str = DEFAULT_SOLVER,
                max_steps: int = DEFAULT_MAX_STEPS, rtol: float | None = None,
-               atol: float | None = None) -> TexelFit:
+               atol: float | None = None, materials: MaterialTable | None = None,
+               robust_rounds: int = 0) -> TexelFit:
     """Fit a batch of texels (jitted, vmapped over the leading axis of `ratio` and `weight`).
 
     A texel's fit is bit-identical in any batch, at any place: the lights are padded with
@@ -465,6 +676,7 @@ def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_
     if pad_t:
         ratio = jnp.concatenate([ratio, jnp.repeat(ratio[-1:], pad_t, axis=0)])
         weight = jnp.concatenate([weight, jnp.repeat(weight[-1:], pad_t, axis=0)])
-    one = functools.partial(fit_texel, model=model, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol)
-    out = jax.vmap(one, in_axes=(0, 0, None, None))(ratio, weight, light_dirs, view_dir)
+    one = functools.partial(fit_texel, model=model, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol,
+                            robust_rounds=robust_rounds)
+    out = jax.vmap(lambda r, w: one(r, w, light_dirs, view_dir, materials=materials))(ratio, weight)
     return jax.tree_util.tree_map(lambda x: x[:n_texels], out) if pad_t else out

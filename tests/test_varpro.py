@@ -74,3 +74,49 @@ def test_gauss_newton_value_gradient_and_schur_matrix(model, k):
     a_rt = gram[:6, 6:][free]
     schur = gram[6:, 6:] - a_rt.T @ np.linalg.solve(a_rr, a_rt)
     np.testing.assert_allclose(gn.matrix, schur, rtol=DERIV_RTOL, atol=DERIV_RTOL * np.abs(schur).max())
+
+
+@pytest.mark.parametrize("ambient", [0.0, 1.0])
+@pytest.mark.parametrize("k", range(len(THETAS)))
+def test_prior_and_ambient_against_bounded_least_squares(k, ambient):
+    """With a `Prior` (rho_s pulled toward mu, log-slopes toward s_mu) and an ambient constant per
+    channel projected out: the objective, the projected rho and the gradient equal a brute-force
+    reference, scipy's bounded linear least squares over (rho_d >= 0, rho_s >= 0, c free) with
+    the ridge and prior as extra rows, and central differences of its optimum."""
+    import scipy.optimize
+
+    from fitting._varpro import Prior
+
+    model = "reciprocal"
+    theta0 = jnp.asarray(THETAS[k])
+    ratio, w = _data(theta0, model, seed=10 + k)
+    ratio = ratio + 0.02   # an ambient term the centring absorbs
+    theta = theta0 + 0.05
+    lights = lights_of(LIGHTS, VIEW)
+    prior = Prior(jnp.asarray([0.3, 0.1, 0.2]), jnp.asarray(0.5), jnp.asarray([-2.0, -1.5]), jnp.asarray(0.3))
+    lam = float(ridge_of(w))
+
+    def brute(th):
+        a, b = (np.asarray(x) for x in columns(jnp.asarray(th), lights, model))
+        sw = np.sqrt(np.asarray(w))
+        total, rho = 0.0, []
+        for c in range(3):
+            rows = np.stack([sw * a, sw * b, sw * ambient], axis=1)
+            rows = np.concatenate([rows, [[np.sqrt(lam), 0, 0], [0, np.sqrt(lam), 0],
+                                          [0, np.sqrt(float(prior.rho_weight)), 0]]])
+            rhs = np.concatenate([sw * np.asarray(ratio[c]),
+                                  [0.0, 0.0, np.sqrt(float(prior.rho_weight)) * prior.rho_s[c]]])
+            sol = scipy.optimize.lsq_linear(rows, rhs, bounds=([0, 0, -np.inf], [np.inf, np.inf, np.inf]),
+                                            method="bvls", tol=1e-14)
+            total += 0.5 * float(np.sum((rows @ sol.x - rhs) ** 2))
+            rho.append(sol.x[:2])
+        ds = np.asarray(th)[2:] - np.asarray(prior.s)
+        return total + 0.5 * float(prior.s_weight) * float(ds @ ds), np.array(rho)
+
+    gn = gauss_newton(theta, ratio, w, lights, model, prior, ambient=jnp.asarray(ambient))
+    ref, rho = brute(theta)
+    np.testing.assert_allclose(float(gn.objective), ref, rtol=1e-9)
+    np.testing.assert_allclose(np.stack([gn.rho_d, gn.rho_s], 1), rho, rtol=1e-7, atol=1e-10)
+    h = 1e-6
+    fd = np.array([(brute(theta + h * e)[0] - brute(theta - h * e)[0]) / (2 * h) for e in np.eye(4)])
+    np.testing.assert_allclose(gn.grad, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
