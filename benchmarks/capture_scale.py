@@ -1,4 +1,6 @@
 """Fitting a measured stack at scale (issue 12): ingest and fit apart, memory of every process.
+Every fit here is `--method plain` (per-texel least squares of the paper's dense captures; the robust
+default of real captures costs about three solves a texel and is benchmarks/real_captures.py's).
 
     python benchmarks/capture_scale.py                  # 1024x1024 and 256x256, 540 lights x 2 exposures
     python benchmarks/capture_scale.py --sizes 256      # the 256x256 part only
@@ -159,14 +161,14 @@ from fitting.fit import fit_maps
 from fitting.tiles import fit_store_maps
 obs = merge_capture(load_capture(sys.argv[1]), progress=False)
 store = open_store(sys.argv[2])
-fit_maps(obs, chunk=4096, progress=False)  # compile (or load) the tile program once
+fit_maps(obs, chunk=4096, progress=False, method="plain")  # compile (or load) the tile program once
 out = {"in-memory": [], "store": []}
 for rep, path in enumerate(["in-memory", "store", "store", "in-memory", "in-memory", "store"]):
     t0, c0 = time.perf_counter(), time.process_time()
     if path == "store":
-        maps = fit_store_maps(store, partial_dir=sys.argv[3] + f"/partial{rep}", progress=False)
+        maps = fit_store_maps(store, partial_dir=sys.argv[3] + f"/partial{rep}", progress=False, method="plain")
     else:
-        maps = fit_maps(obs, chunk=4096, progress=False)
+        maps = fit_maps(obs, chunk=4096, progress=False, method="plain")
     out[path].append([time.perf_counter() - t0, time.process_time() - c0])
     out.setdefault("maps_" + path, maps.rho_d)
 same = np.array_equal(out.pop("maps_store"), out.pop("maps_in-memory"))
@@ -234,7 +236,7 @@ def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, da
     steps.append(measure(f"{tag} ingest float16", [*FITTING, "ingest", str(cap), "--store", str(store16)], env))
     out["store16_bytes"] = sum(p.stat().st_size for p in store16.rglob("*") if p.is_file())
     steps.append(measure(f"{tag} fit store" + (" (+pyramid)" if pyramid else " (no pyramid)"),
-                         [*FITTING, "fit", str(store16), "--out", str(btf16)] + ([] if pyramid else ["--no-pyramid"]),
+                         [*FITTING, "fit", "--method", "plain", str(store16), "--out", str(btf16)] + ([] if pyramid else ["--no-pyramid"]),
                          env))
     manifest, level16 = _btf(btf16)
     out["fit_seconds"] = manifest["fit"]["seconds"]
@@ -249,7 +251,7 @@ def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, da
             shutil.rmtree(path, ignore_errors=True)
         steps.append(measure(f"{tag} ingest float32", [*FITTING, "ingest", str(cap), "--store", str(store32),
                                                        "--dtype", "float32"], env))
-        steps.append(measure(f"{tag} fit float32 store", [*FITTING, "fit", str(store32), "--out", str(btf32),
+        steps.append(measure(f"{tag} fit float32 store", [*FITTING, "fit", "--method", "plain", str(store32), "--out", str(btf32),
                                                           "--no-pyramid"], env))
         steps.append(measure(f"{tag} in-memory merge+fit", [sys.executable, "-c", IN_MEMORY, str(cap), str(btfmem)],
                              env))
@@ -272,7 +274,7 @@ def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, da
     for n in dask:
         btf = root / f"btf_dask{n}_{size}"
         shutil.rmtree(btf, ignore_errors=True)
-        steps.append(measure(f"{tag} fit store dask x{n}", [*FITTING, "fit", str(store16), "--out", str(btf),
+        steps.append(measure(f"{tag} fit store dask x{n}", [*FITTING, "fit", "--method", "plain", str(store16), "--out", str(btf),
                                                            "--no-pyramid", "--dask-workers", str(n)], env))
         md, leveld = _btf(btf)
         out[f"dask{n}_fit_s"] = md["fit"]["seconds"]

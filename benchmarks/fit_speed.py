@@ -7,8 +7,10 @@
 Steps, timed apart:
 1. synthesis + HDR merge in memory (`fitting.synth_maps`, `fitting.synth_observations`: 6 exposures,
    8-bit codes with shot and read noise, merged as `fitting fit` merges a capture directory);
-2. the fit (`fitting.fit_maps`, chunks of 4096 texels) of every texel: compilation (the first chunk's
-   shape) apart; optimistix by default, native and jaxopt with --solvers;
+2. the fit (`fitting.fit_maps`, chunks of 4096 texels, method "plain": per-texel least squares, the
+   peers' objective; the default "robust" method of real captures is benchmarks/real_captures.py's)
+   of every texel: compilation (the first chunk's shape) apart; optimistix by default, native and
+   jaxopt with --solvers;
 3. the peers on a random subset of texels (default 96; the naive one is too slow for the whole map:
    ~370 s), ratios in texels per second: `scipy.optimize.least_squares` per texel as a user would
    write it (a Python loop, all 10 parameters, default method 'trf' and 2-point Jacobian, a float64
@@ -139,7 +141,7 @@ def compile_fit(obs, solver, chunk) -> float:
                     n_valid=obs.n_valid.reshape(-1)[:first][None],
                     n_saturated=obs.n_saturated.reshape(-1)[:first][None],
                     n_dark=obs.n_dark.reshape(-1)[:first][None])
-    fit_maps(sub, solver=solver, chunk=chunk, progress=False)
+    fit_maps(sub, solver=solver, chunk=chunk, progress=False, method="plain")
     return time.perf_counter() - t0
 
 
@@ -223,7 +225,7 @@ def main(argv=None) -> dict:
         def run(name):
             t0, c0 = time.perf_counter(), time.process_time()
             if name in solvers:
-                maps[name] = fit_maps(obs, solver=name, chunk=args.chunk, progress=False)
+                maps[name] = fit_maps(obs, solver=name, chunk=args.chunk, progress=False, method="plain")
                 jax.block_until_ready(maps[name].rho_d)
                 worker_cpu = 0.0
             else:

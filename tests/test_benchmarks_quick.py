@@ -47,7 +47,11 @@ def test_summary_table_keeps_rows_and_takes_measured_figures(tmp_path, monkeypat
     rec = {"date_utc": "2026-11-23 21:00", "command": "python benchmarks/x.py", "load_average_1_5_15": [3.0, 2, 1],
            "cpu": "AMD EPYC 9B14 (AVX-512)",
            "rows": [{"issue": "2 b", "target": "updated row", "measured": "1.5x", "status": "missed"},
-                    {"issue": "3 c", "target": "new row", "measured": "2x", "status": "met", "notes": "n"}]}
+                    {"issue": "3 c", "target": "new row", "measured": "2x", "status": "met", "notes": "n"},
+                    # a row rerun alone (write_results(update=True)) carries its own run
+                    {"issue": "3 c", "target": "rerun row", "measured": "3x", "status": "met",
+                     "run": {"date_utc": "2026-11-24 01:00", "command": "python benchmarks/x.py --sections y",
+                             "load_average_1_5_15": [1.0, 1, 1], "cpu": "Intel Xeon (AVX-512)"}}]}
     (results / "x.json").write_text(json.dumps(rec))
     monkeypatch.setattr(run_all, "RESULTS_MD", md)
     monkeypatch.setattr(run_all, "RESULTS_DIR", results)
@@ -57,3 +61,17 @@ def test_summary_table_keeps_rows_and_takes_measured_figures(tmp_path, monkeypat
     assert ("| 2 b | updated row | 1.5x [2026-11-23 21:00 UTC, AMD EPYC 9B14 (AVX-512), load 3.0, "
             "`python benchmarks/x.py`] | missed |  |") in text
     assert "| 3 c | new row | 2x" in text and text.endswith(run_all.END + "\n\nrest\n")
+    assert ("| 3 c | rerun row | 3x [2026-11-24 01:00 UTC, Intel Xeon (AVX-512), load 1.0, "
+            "`python benchmarks/x.py --sections y`] | met |") in text
+
+
+def test_write_results_update_replaces_only_the_rerun_rows(tmp_path, monkeypatch):
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import _results
+
+    monkeypatch.setenv("BENCH_RESULTS_DIR", str(tmp_path))
+    rows = [{"issue": "9 x", "target": t, "measured": m, "status": "met"} for t, m in (("a", "1"), ("b", "2"))]
+    _results.write_results("x", rows)
+    _results.write_results("x", [{"issue": "9 x", "target": "b", "measured": "3", "status": "missed"}], update=True)
+    rec = json.loads((tmp_path / "x.json").read_text())
+    assert [(r["target"], r["measured"], "run" in r) for r in rec["rows"]] == [("a", "1", False), ("b", "3", True)]
