@@ -47,6 +47,7 @@ from _results import write_results  # noqa: E402
 
 EXPOSURES = (0.0015625, 0.008)
 FITTING = [sys.executable, "-m", "jaxrender.app.cli.programs", "fitting"]
+FIT_PLAIN = [*FITTING, "fit", "--method", "plain"]  # the dense captures' per-texel fit (module docstring)
 
 
 def write_capture(root: Path, size: int, n_lights: int, *, batch: int = 4) -> Path:
@@ -236,7 +237,7 @@ def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, da
     steps.append(measure(f"{tag} ingest float16", [*FITTING, "ingest", str(cap), "--store", str(store16)], env))
     out["store16_bytes"] = sum(p.stat().st_size for p in store16.rglob("*") if p.is_file())
     steps.append(measure(f"{tag} fit store" + (" (+pyramid)" if pyramid else " (no pyramid)"),
-                         [*FITTING, "fit", "--method", "plain", str(store16), "--out", str(btf16)] + ([] if pyramid else ["--no-pyramid"]),
+                         [*FIT_PLAIN, str(store16), "--out", str(btf16)] + ([] if pyramid else ["--no-pyramid"]),
                          env))
     manifest, level16 = _btf(btf16)
     out["fit_seconds"] = manifest["fit"]["seconds"]
@@ -251,7 +252,7 @@ def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, da
             shutil.rmtree(path, ignore_errors=True)
         steps.append(measure(f"{tag} ingest float32", [*FITTING, "ingest", str(cap), "--store", str(store32),
                                                        "--dtype", "float32"], env))
-        steps.append(measure(f"{tag} fit float32 store", [*FITTING, "fit", "--method", "plain", str(store32), "--out", str(btf32),
+        steps.append(measure(f"{tag} fit float32 store", [*FIT_PLAIN, str(store32), "--out", str(btf32),
                                                           "--no-pyramid"], env))
         steps.append(measure(f"{tag} in-memory merge+fit", [sys.executable, "-c", IN_MEMORY, str(cap), str(btfmem)],
                              env))
@@ -274,7 +275,7 @@ def run_size(root: Path, size: int, n_lights: int, env: dict, *, speed: bool, da
     for n in dask:
         btf = root / f"btf_dask{n}_{size}"
         shutil.rmtree(btf, ignore_errors=True)
-        steps.append(measure(f"{tag} fit store dask x{n}", [*FITTING, "fit", "--method", "plain", str(store16), "--out", str(btf),
+        steps.append(measure(f"{tag} fit store dask x{n}", [*FIT_PLAIN, str(store16), "--out", str(btf),
                                                            "--no-pyramid", "--dask-workers", str(n)], env))
         md, leveld = _btf(btf)
         out[f"dask{n}_fit_s"] = md["fit"]["seconds"]
