@@ -489,7 +489,8 @@ def main(argv=None) -> int:
     from _results import write_results
 
     # a subset of the sections replaces its own rows in results/shafts_fog.json (each row names its run)
-    write_results("shafts_fog", rows, quick=args.quick, update=set(names) != set(SECTIONS))
+    if rows:  # (the quick run's grid frame has no row)
+        write_results("shafts_fog", rows, quick=args.quick, update=set(names) != set(SECTIONS))
     for row in rows:
         print(f"| {row['issue']} | {row['target']} | {row['measured']} | {row['status']} |")
     return 0

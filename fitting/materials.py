@@ -46,6 +46,7 @@ _GRID = np.array([-0.17, 0.0, 0.17])   # log-slope offsets of the refinement aro
 _ALS_ROUNDS = 6
 _REASSIGN_ROUNDS = 2
 _MATTE_S = float(np.log(0.3))
+NOISE_FLOOR = 1e-12   # relative noise variance below which data count as exact (noise-free synthetic captures)
 
 
 def sample_indices(valid_texels: np.ndarray, count: int = SAMPLE_TEXELS) -> np.ndarray:
@@ -154,7 +155,7 @@ def estimate_materials(ratio, weight, light_dirs, view_dir, *, model: str = "rec
     fields = ("normal", "rho_d", "rho_s", "sigma_x", "sigma_y", "n_valid")
     fits = {k: np.asarray(fits[k] if isinstance(fits, dict) else getattr(fits, k)) for k in fields}
     keep = (fits["n_valid"] >= 8) & np.all(np.isfinite(fits["normal"]), -1)
-    if keep.sum() < 16:
+    if keep.sum() < MIN_MEMBERS // 2:   # too few for any material (a row needs this many members)
         return no_materials(), {"materials": 0, "sample": n}
     ratio, weight = ratio[keep], weight[keep]
     fits = {k: v[keep] for k, v in fits.items()}
@@ -213,6 +214,8 @@ def estimate_materials(ratio, weight, light_dirs, view_dir, *, model: str = "rec
             centre = colour[members].mean(0)
             spread = max(float(np.sqrt(np.mean((colour[members] - centre) ** 2))), COLOUR_SPREAD_FLOOR)
             rows.append((best[1], best[2], centre, spread, members.size))
+        if all(r is None for r in rows):   # every material lost its members: no table
+            return no_materials(), {"materials": 0, "sample": n}
         seeds = [r[0] if r is not None else None for r in rows]
         # reassign every texel to the material that explains it best (data, colour, share)
         costs = np.full((n, len(rows)), np.inf)
@@ -229,7 +232,7 @@ def estimate_materials(ratio, weight, light_dirs, view_dir, *, model: str = "rec
             d = (colour - centre) / spread
             costs[:, j] = cost
             prior_terms[:, j] = 0.5 * np.sum(d * d, -1) + 3 * np.log(spread) - np.log(count / n)
-        var = np.median(np.min(costs, 1) * 2 / (3 * nv) / mean_sq) * mean_sq   # the noise level, as below
+        var = max(np.median(np.min(costs, 1) * 2 / (3 * nv) / mean_sq), NOISE_FLOOR) * mean_sq   # noise, as below
         assign = np.argmin(costs / var[:, None] + prior_terms, 1)
         seeds = [s if s is not None else np.full(2, _MATTE_S) for s in seeds]
     data_cost = []
