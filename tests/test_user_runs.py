@@ -44,26 +44,12 @@ REPORT_MEDIAN_MAX = 0.03
 REPORT_MAX_MAX = 0.05
 
 
-_CACHE = {}
-
-
-@pytest.fixture(scope="module", autouse=True)
-def compilation_cache(tmp_path_factory):
-    """One persistent JAX compilation cache for this module's runs, so a command run twice (PNG and
-    EXR, several relights) compiles once, as it does for a user with a cache."""
-    _CACHE["dir"] = tmp_path_factory.mktemp("jax_cache")
-    yield
-    _CACHE.clear()
-
-
 def run(tool: str, *args, cwd=None) -> subprocess.CompletedProcess:
     """Run a console script; assert it exits 0 and return it (stdout/stderr captured)."""
     env = dict(os.environ)
     env.pop("JAX_ENABLE_X64", None)  # as a user runs it: float32
     env["MPLBACKEND"] = "Agg"
-    if "dir" in _CACHE:
-        env.update(JAX_COMPILATION_CACHE_DIR=str(_CACHE["dir"]), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-                   JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
+    # (the run's persistent compilation cache, tests/conftest.py: a command run twice compiles once)
     exe = SCRIPTS / tool
     assert exe.is_file(), f"console script {exe} is not installed (pip install -e .)"
     proc = subprocess.run([str(exe), *map(str, args)], capture_output=True, text=True, env=env, cwd=cwd,
