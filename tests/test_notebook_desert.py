@@ -1,26 +1,16 @@
 """Executes examples/desert.ipynb headless and checks the values it computes."""
 
-import json
-import os
 from pathlib import Path
 
-import nbclient
-import nbformat
 import numpy as np
+from notebook_helpers import run_notebook, tagged_results
 
 NOTEBOOK = Path(__file__).resolve().parents[1] / "examples" / "desert.ipynb"
 GRAD_REL_TOL = 1e-4  # float64, central step 1e-8 on a piecewise-linear function: agrees to ~1e-6
 
 
 def test_desert_notebook_runs_and_computes():
-    os.environ["MPLBACKEND"] = "Agg"
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
-                            resources={"metadata": {"path": str(NOTEBOOK.parent)}}).execute()
-    text = "".join(out.get("text", "") for cell in nb.cells if cell.cell_type == "code"
-                   for out in cell.get("outputs", []))
-    line = next(l for l in text.splitlines() if l.startswith("RESULTS "))
-    r = json.loads(line[len("RESULTS "):])
+    r = tagged_results(run_notebook(NOTEBOOK))
     assert 3.0 < r["ripple_wavelength"] < 64.0
     assert r["sand_conserved"] < 1e-10  # float64 automaton conserves sand
     assert r["horizon_min"] >= 0.0 and r["horizon_max"] > 0.0

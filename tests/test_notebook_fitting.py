@@ -1,11 +1,8 @@
 """examples/fitting.ipynb runs top to bottom and its numbers say the fit works."""
 
-import json
-import os
 from pathlib import Path
 
-import nbclient
-import nbformat
+from notebook_helpers import last_results, run_notebook
 
 NOTEBOOK = Path(__file__).parent.parent / "examples" / "fitting.ipynb"
 # 16 x 16 texels, 150 lights, 8-bit capture with shot/read noise: the fit recovers normals to a
@@ -17,20 +14,7 @@ CONVERGED_MIN = 0.9
 
 
 def test_fitting_notebook_runs():
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    env_backend = os.environ.get("MPLBACKEND")
-    os.environ["MPLBACKEND"] = "Agg"
-    try:
-        nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
-                                resources={"metadata": {"path": str(NOTEBOOK.parent)}}).execute()
-    finally:
-        if env_backend is None:
-            os.environ.pop("MPLBACKEND", None)
-        else:
-            os.environ["MPLBACKEND"] = env_backend
-    last = nb.cells[-1]
-    text = "".join(o.get("text", "") for o in last.outputs if o.get("output_type") == "stream")
-    summary = json.loads(text.strip().splitlines()[-1])
+    summary = last_results(run_notebook(NOTEBOOK))
     assert summary["converged"] >= CONVERGED_MIN
     assert summary["normal_err_median_deg"] < NORMAL_MEDIAN_TOL_DEG
     assert summary["sigma_rel_err_median"] < SIGMA_MEDIAN_TOL

@@ -1,12 +1,9 @@
 """Executes examples/fog_inverse.ipynb headless and checks what it recovers: a density grid fitted to
 three rendered views of a known one (L-BFGS-B through jax.value_and_grad of the default method)."""
 
-import json
-import os
 from pathlib import Path
 
-import nbclient
-import nbformat
+from notebook_helpers import run_notebook, tagged_results
 
 NOTEBOOK = Path(__file__).resolve().parents[1] / "examples" / "fog_inverse.ipynb"
 _IMAGE_FIT = 0.02  # image error after 30 iterations (measured 0.44 %, from 23 % at the start)
@@ -14,14 +11,7 @@ _GRID_GAIN = 0.5  # the grid's error at least halved (measured 52 % -> 15 %: unl
 
 
 def test_fog_inverse_notebook_recovers_the_grid(tmp_path):
-    os.environ["MPLBACKEND"] = "Agg"
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    nbclient.NotebookClient(nb, timeout=900, kernel_name="python3",
-                            resources={"metadata": {"path": str(tmp_path)}}).execute()
-    lines = [line for cell in nb.cells if cell.cell_type == "code" for out in cell.get("outputs", [])
-             for line in out.get("text", "").splitlines() if line.startswith("RESULTS ")]
-    assert len(lines) == 1
-    results = json.loads(lines[0][len("RESULTS "):])
+    results = tagged_results(run_notebook(NOTEBOOK, cwd=tmp_path, timeout=900))
     assert results["image_error_start"] > 0.1  # the start is far from the views
     assert results["image_error_end"] < _IMAGE_FIT, results
     assert results["grid_error_end"] < _GRID_GAIN * results["grid_error_start"], results

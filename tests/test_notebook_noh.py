@@ -1,21 +1,13 @@
 """Execute examples/noh.ipynb headless and check the values it computes."""
 
-import json
-import os
 from pathlib import Path
 
-import nbclient
-import nbformat
+from notebook_helpers import last_results, run_notebook
 
 
 def test_noh_notebook_runs_and_em_beats_the_ordinary_mip():
     path = Path(__file__).resolve().parents[1] / "examples" / "noh.ipynb"
-    nb = nbformat.read(path, as_version=4)
-    os.environ.setdefault("MPLBACKEND", "Agg")
-    nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
-                            resources={"metadata": {"path": str(path.parent)}}).execute()
-    text = "".join(o.get("text", "") for o in nb.cells[-1].outputs if o.get("output_type") == "stream")
-    results = json.loads(text.strip().splitlines()[-1])
+    results = last_results(run_notebook(path))
     assert results["sizes"][0] == [16, 16] and results["sizes"][-1] == [1, 1]
     assert max(results["two_lobe_fraction"][1:]) > 0          # EM kept two lobes somewhere
     # at a distance the two-lobe EM level is much closer to the truth than the ordinary mip

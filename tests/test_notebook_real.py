@@ -2,13 +2,11 @@
 generalizes: normals near the laser scan, held-out photographs predicted better than the
 least-squares Lambertian fit of the same lights."""
 
-import json
 import os
 from pathlib import Path
 
-import nbclient
-import nbformat
 import pytest
+from notebook_helpers import last_results, run_notebook
 
 ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOK = ROOT / "examples" / "real_capture.ipynb"
@@ -24,20 +22,7 @@ def test_real_capture_notebook_runs():
     if not (data / "catPNG").is_dir():
         pytest.fail(f"DiLiGenT data not found at {data}: set JAXRENDER_DILIGENT (see README, 'Real captures')",
                     pytrace=False)
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    env_backend = os.environ.get("MPLBACKEND")
-    os.environ["MPLBACKEND"] = "Agg"
-    try:
-        nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
-                                resources={"metadata": {"path": str(NOTEBOOK.parent)}}).execute()
-    finally:
-        if env_backend is None:
-            os.environ.pop("MPLBACKEND", None)
-        else:
-            os.environ["MPLBACKEND"] = env_backend
-    last = nb.cells[-1]
-    text = "".join(o.get("text", "") for o in last.outputs if o.get("output_type") == "stream")
-    summary = json.loads(text.strip().splitlines()[-1])
+    summary = last_results(run_notebook(NOTEBOOK))
     assert summary["normals_deg"] < NORMALS_TOL_DEG, summary
     assert summary["normals_deg"] < summary["lambertian_normals_deg"], summary
     assert summary["heldout"] < HELDOUT_RATIO_MAX * summary["heldout_lambertian"], summary
