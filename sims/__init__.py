@@ -18,6 +18,7 @@ from .cloth import animate_cloth as animate_cloth
 from .cloth import cloth_mesh as cloth_mesh
 from .cloth import drape_cloth as drape_cloth
 from .cloth import drape_garment as drape_garment
+from .cloth import scan_frames as scan_frames
 from .cloth import simulate_cloth as simulate_cloth
 from .costume import BodyVolumes as BodyVolumes
 from .costume import Costume as Costume

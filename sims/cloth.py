@@ -26,6 +26,7 @@ zero velocity at t = 0, so the settled drape is the first frame and nothing jump
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -37,7 +38,7 @@ from jaxrender.maths import default_float
 
 __all__ = ["ClothMesh", "ClothSprings", "cloth_springs", "cloth_energy", "simulate_cloth", "drape_cloth",
            "grid_triangles", "vertex_normals", "ClothState", "BodyMotion", "DrapedCloth", "drape_garment",
-           "advance_cloth", "animate_cloth", "cloth_mesh"]
+           "advance_cloth", "animate_cloth", "scan_frames", "cloth_mesh"]
 
 
 class ClothSprings(eqx.Module):
@@ -324,9 +325,15 @@ def animate_cloth(cloth: DrapedCloth, motion: BodyMotion, *, frames: int, frame_
     settled drape when `state` is None): the positions at each frame's end and the last state."""
     steps = max(1, int(round(frame_dt / cloth.dt)))
     state = cloth.state if state is None else state
+    return scan_frames(lambda s: advance_cloth(cloth, s, motion, steps=steps), state, frames)
 
+
+def scan_frames(advance: Callable[[ClothState], ClothState], state: ClothState,
+                frames: int) -> tuple[Float[Array, "F N 3"], ClothState]:
+    """`advance` applied `frames` times from `state` (one `lax.scan`): the positions after each
+    application and the last state. The frame loop of `animate_cloth` and `sims.costume_frames`."""
     def frame(s, _):
-        s = advance_cloth(cloth, s, motion, steps=steps)
+        s = advance(s)
         return s, s.x
 
     state, xs = jax.lax.scan(frame, state, None, length=frames)

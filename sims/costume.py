@@ -18,7 +18,7 @@ from jaxtyping import Array, Float, Int
 from jaxrender.errors import InputError
 from jaxrender.maths import default_float
 
-from .cloth import ClothSprings, ClothState, vertex_normals
+from .cloth import ClothSprings, ClothState, scan_frames, vertex_normals
 from .skeleton import SkeletonMotion
 
 __all__ = ["JOINT_NAMES", "BodyVolumes", "Costume", "performer_joints", "body_volumes", "dress_performer",
@@ -446,13 +446,7 @@ def costume_frames(costume: Costume, motion: SkeletonMotion, *, frames: int, fra
     positions at each frame's end and the last state."""
     steps = max(1, int(round(frame_dt / costume.dt)))
     state = costume.state if state is None else state
-
-    def frame(st, _):
-        st = advance_costume(costume, st, motion, steps=steps)
-        return st, st.x
-
-    state, xs = jax.lax.scan(frame, state, None, length=frames)
-    return xs, state
+    return scan_frames(lambda st: advance_costume(costume, st, motion, steps=steps), state, frames)
 
 
 def volume_penetration(costume: Costume, x: Float[Array, "N 3"], positions: Float[Array, "J 3"],
