@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import nbformat as nbf
+from _notebook import write_notebook
 
 cells = [
     nbf.v4.new_markdown_cell("""# Fitting a BTF to a multi-light capture (paper 004, sections 3.1-3.2)
@@ -87,8 +88,4 @@ summary = {"converged": float(np.mean(maps.converged)), "normal_err_median_deg":
            "sigma_err_strong_specular": float(np.median(sig_rel[~weak])), "worst_texel": [int(worst[0]), int(worst[1])]}
 print(json.dumps(summary))"""),
 ]
-for i, cell in enumerate(cells):  # stable ids: regenerating changes only what the cells say
-    cell["id"] = f"cell-{i:02d}"
-nb = nbf.v4.new_notebook(cells=cells, metadata={"kernelspec": {"name": "python3", "display_name": "Python 3",
-                                                               "language": "python"}})
-nbf.write(nb, Path(__file__).with_name("fitting.ipynb"))
+write_notebook(cells, Path(__file__).with_name("fitting.ipynb"))

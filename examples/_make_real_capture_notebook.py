@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import nbformat as nbf
+from _notebook import write_notebook
 
 cells = [
     nbf.v4.new_markdown_cell("""# Fitting a real capture: a DiLiGenT object (issue 23)
@@ -85,8 +86,4 @@ summary = {"texels": int(mask.sum()), "normals_deg": err, "lambertian_normals_de
            "heldout_lambertian": heldout_l, "fit_seconds": seconds}
 print(json.dumps(summary))"""),
 ]
-for i, cell in enumerate(cells):  # stable ids: regenerating changes only what the cells say
-    cell["id"] = f"cell-{i:02d}"
-nb = nbf.v4.new_notebook(cells=cells, metadata={"kernelspec": {"name": "python3", "display_name": "Python 3",
-                                                               "language": "python"}})
-nbf.write(nb, Path(__file__).with_name("real_capture.ipynb"))
+write_notebook(cells, Path(__file__).with_name("real_capture.ipynb"))
