@@ -20,7 +20,7 @@ _QUAD_TOL = 1e-3  # 64 angle steps vs 400 000-point float64 midpoint rule, no sh
 _FD_RTOL = 2e-4  # float64 central differences, h = 1e-5 relative, smooth configuration
 _EXACT = 1e-9  # the same computation, float64
 
-_eq = jax.jit(render_equiangular, static_argnames=("samples", "shadow_map", "surface_shadows", "chunk", "prune", "bake",
+_eq = jax.jit(render_equiangular, static_argnames=("samples", "shadow_map", "surface_shadows", "chunk", "prune",
                                                    "return_parts"))
 _rm = jax.jit(render_raymarch, static_argnames=("samples", "batch_size", "return_parts"))
 
