@@ -79,7 +79,7 @@ def test_pruning_changes_nothing():
 
 def test_render_entry_point_dispatches_and_rejects_unknown_method():
     scene = _scene(width=8, height=6, shadow_map=32)
-    got = jax.jit(lambda s: render(s, samples=8, shadow_map=32, prune=False))(scene)
+    got = jax.jit(lambda s: render(s, method="equiangular", samples=8, shadow_map=32, prune=False))(scene)
     np.testing.assert_allclose(np.asarray(got), np.asarray(_eq(scene, samples=8, shadow_map=32, prune=False)),
                                atol=_EXACT)
     with pytest.raises(ValueError, match="unknown shafts method"):

@@ -149,7 +149,8 @@ class SpotLight(eqx.Module):
         2^B - 1 levels of its maximum (8-bit textures). A 1 x 1 map (no light map) is its texel
         everywhere, read without gathers (the five-spot stage's surface pass: ~6 % less CPU).
         `footprint` (radians seen from the light): instead, the nearest texel of the mip level
-        whose texels are no larger than it (`mips`; one gather, whatever the map's size). No gradient through uv in either mode's texel choice (nor at all with `footprint`)."""
+        whose texels are no larger than it (`mips`; one gather, whatever the map's size). No
+        gradient through uv."""
         texture = self.quantized_map(quantize_bits)
         uv = jnp.asarray(uv)
         if texture.shape[:2] == (1, 1):

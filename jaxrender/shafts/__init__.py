@@ -10,6 +10,7 @@ hardware emulation (eqs. 5-9), and a ray-marched reference; `render` runs any of
     ref = jaxrender.shafts.render_raymarch(scene, samples=180)
 """
 
+from ._adaptive import render_adaptive as render_adaptive
 from ._density import DensityGrid as DensityGrid
 from ._density import DepthVolume as DepthVolume
 from ._density import box_interval as box_interval
@@ -18,7 +19,6 @@ from ._density import segment_optical_depth as segment_optical_depth
 from ._equiangular import equiangular_ladder as equiangular_ladder
 from ._equiangular import equiangular_scattering as equiangular_scattering
 from ._equiangular import render_equiangular as render_equiangular
-from ._adaptive import render_adaptive as render_adaptive
 from ._error_target import CountChoice as CountChoice
 from ._error_target import choose_counts as choose_counts
 from ._error_target import proxy_scene as proxy_scene

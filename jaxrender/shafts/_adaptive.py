@@ -1,44 +1,65 @@
 """In-scattering at the resolution it needs (the default shafts method, "adaptive"): every light's
 equiangular single scattering (`equiangular_scattering`) evaluated on a coarse grid of rays,
-interpolated to the pixels, and evaluated exactly at the pixels of the cells where the
+interpolated to the pixels, and evaluated at the pixels themselves in the cells where the
 interpolation would be wrong; surfaces at full resolution.
 
-The image is cut into cells of `cell` x `cell` pixels; the coarse rays ("nodes") pass through
-the pixels at the cells' corners (pixel (cell i, cell j), one more row and column past the image's
-last cells). Each light's in-scattering v is evaluated at the nodes (only where its cone is:
-`active_rays_map`) and the pixels of a cell get the bilinear interpolation of its four corners.
-A cell is refined for a light, all its pixels evaluated exactly, where the interpolation's error
-is estimated above `tolerance` times the RMS of the in-scattered light over the nodes:
+The image is cut into cells of `cell` x `cell` pixels (4 x 4 by default); the coarse rays
+("nodes") pass through the pixels at the cells' corners (pixel (cell i, cell j), one row and
+column past the image's last cells). Each light's in-scattering v is evaluated at the nodes (only
+where its cone is: `active_rays_map`) and the pixels of a cell get the bilinear interpolation of
+its four corners. A cell is refined for a light, every pixel of it evaluated, where
 
-- the light's in-scattering bends within the cell: the second differences of v along the node
-  rows and columns at the cell's corners (bilinear interpolation between nodes a cell apart errs
-  by about a quarter of them at a kink, an eighth on a smooth curve), at shadow and light-map
-  edges and the cone's rim;
-- the surfaces' depth jumps inside the cell (the depth of a pixel is off the bilinear
-  interpolation of the corners' depths by more than `tolerance` relative) and the light's cone
-  crosses a corner's ray: at silhouettes the in-scattering jumps with the depth, and
-  interpolating across the jump would bleed light from one side onto the other (a halo).
+- the interpolation's error, estimated as a quarter of the largest second difference of v along
+  the node rows and columns at the cell's corners (bilinear interpolation between nodes a cell
+  apart errs by about that at a kink, by half that on a smooth curve), exceeds `tolerance` times
+  the RMS of the in-scattered light over the nodes: at shadow and light-map edges, the cone's
+  rim, where a beam meets a surface;
+- or the surfaces' depth jumps inside the cell (a pixel's depth is off the bilinear interpolation
+  of the corners' depths by more than `DEPTH_JUMP`, relative) and the light is seen around the
+  cell (some node of the cell's 4 x 4 neighbourhood has in-scattered light of it): at a
+  silhouette the in-scattering jumps with the depth, and interpolating across the jump would
+  bleed light from one side onto the other (a halo). Depth-aware by construction: no cell whose
+  pixels straddle a silhouette is interpolated.
 
-Refinement is a fixed-capacity compaction (`map_active_runs`): the pixels are ordered cell by cell,
-so a refined cell is one contiguous run of cell^2 rays; runs past the refined count are skipped
-under `lax.cond`. The interpolation and the refinement are linear in the node and pixel values,
-so gradients flow to every parameter the equiangular method's do; the choice of cells carries
-none (it is a selection, like a shadow test).
+Node and refined pixel values are the equiangular method's own, so the image is that method's
+wherever it is not interpolated (tests/test_shafts_adaptive.py checks it to rounding), and its
+error against the converged integral is the equiangular rays' plus the interpolation's, which the
+tolerance holds to a fraction of it (benchmarks/RESULTS.md, "Light shafts at interactive rates").
+
+The light maps are read with `MAP_TAPS` taps a sample, spread over the sample's angle: on
+sharp-edged maps (a polka-dot gobo of 256^2 texels) the point-sampled midpoint rule's error is
+the light map's, not the falloff's or the fog's (24 samples: 3.2 % with one tap, 1.8 % with two,
+on the textured spot), and a tap costs less than a sample (a gather and a dozen flops).
+
+Refinement is a fixed-capacity compaction (`map_active_runs`): the pixels are ordered cell by
+cell, so a refined cell is one contiguous run of cell^2 rays, and chunks of runs past the refined
+count are skipped under `lax.cond`. The interpolation and the refinement are linear in the node
+and pixel values, so gradients reach every parameter the equiangular method's do; the choice of
+cells carries none (a selection, like a shadow test).
 """
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ..fusion import materialize
 from ..geometry import nearest_distance
-from ._equiangular import active_rays_map, light_scatter_fns, map_active_runs, shade_frame
+from ._equiangular import active_rays_map, light_scatter_fns, map_active_runs, render_equiangular, shade_frame
 from ._model import FAR, cone_intervals
 from ._scene import ShaftsScene
 
-__all__ = ["render_adaptive"]
+__all__ = ["render_adaptive", "MAP_TAPS"]
+
+MAP_TAPS = 2  # light-map taps a sample (module docstring)
+# a pixel whose depth is off the bilinear interpolation of its cell's corners by more than this
+# fraction is across a silhouette: a smooth surface's depth is off by far less over a 4-pixel cell
+# (second order in the cell's angle: 1 % only at ~86 degrees of incidence at 720 x 480)
+DEPTH_JUMP = 0.01
 
 
 def _pixel_layout(height: int, width: int, cell: int):
@@ -46,10 +67,10 @@ def _pixel_layout(height: int, width: int, cell: int):
     (cells, cell^2, 2) for ceil(H / cell) x ceil(W / cell) cells (pixels past the image's edge
     included: they are cropped at the end)."""
     hc, wc = -(-height // cell), -(-width // cell)
-    a = jnp.arange(cell)
-    rows = (jnp.arange(hc)[:, None, None, None] * cell + a[None, None, :, None]) + jnp.zeros((1, wc, 1, cell))
-    cols = (jnp.arange(wc)[None, :, None, None] * cell + a[None, None, None, :]) + jnp.zeros((hc, 1, cell, 1))
-    xy = jnp.stack([cols, rows], axis=-1) + 0.5
+    a = np.arange(cell)
+    rows = np.broadcast_to(np.arange(hc)[:, None, None, None] * cell + a[None, None, :, None], (hc, wc, cell, cell))
+    cols = np.broadcast_to(np.arange(wc)[None, :, None, None] * cell + a[None, None, None, :], (hc, wc, cell, cell))
+    xy = np.stack([cols, rows], axis=-1) + 0.5
     return xy.reshape((hc * wc, cell * cell, 2)), (hc, wc)
 
 
@@ -89,25 +110,38 @@ def _bends(v: Array) -> Array:
     return jnp.max(jnp.maximum(dx, dy), axis=-1)
 
 
-def render_adaptive(scene: ShaftsScene, *, samples: int = 24, map_taps: int = 2, cell: int = 4,
-                    tolerance: float = 0.1,
+def _dilate(x: Array) -> Array:
+    """Each node's flag or its 3 x 3 neighbourhood's."""
+    p = jnp.pad(x, 1, mode="edge")
+    h, w = x.shape
+    return functools.reduce(jnp.logical_or, [p[i:i + h, j:j + w] for i in range(3) for j in range(3)])
+
+
+def render_adaptive(scene: ShaftsScene, *, samples: int = 24, map_taps: int = MAP_TAPS, cell: int = 4,
+                    tolerance: float = 0.05,
                     shadow_map: int | None = 512, surface_shadows: str = "map", chunk: int = 8192,
                     fog_nodes: int | tuple[int, int] | None = None, return_parts: bool = False,
                     return_refined: bool = False) -> Float[Array, "H W 3"]:
     """Render `scene` (H, W, 3 linear RGB): surfaces per pixel as `render_equiangular`, the
     in-scattering of every light (`samples` per ray, equiangular) at the corners of `cell` x `cell`
     pixel cells, interpolated, and exact in the cells where the interpolation's estimated error
-    exceeds `tolerance` x the RMS of the in-scattered light (module docstring). `cell=1` is the
-    equiangular method itself. shadow_map, surface_shadows, chunk, fog_nodes: as
+    exceeds `tolerance` x the RMS of the in-scattered light, or where a silhouette crosses a lit
+    cell (module docstring). `cell=1` is `render_equiangular`. shadow_map, surface_shadows, chunk, fog_nodes: as
     `render_equiangular`. return_parts: also return (surface, per-light in-scattering list);
-    return_refined: also return the fraction of cells refined per light (a diagnostic).
+    return_refined: also return which cells were refined, (cells down, cells across, lights) booleans.
     Jittable, differentiable; no retrace when light or medium values change."""
+    if int(cell) == 1:
+        if return_refined:
+            raise ValueError("cell=1 refines nothing: it is render_equiangular")
+        return render_equiangular(scene, samples=samples, map_taps=map_taps, shadow_map=shadow_map,
+                                  surface_shadows=surface_shadows, chunk=chunk, fog_nodes=fog_nodes,
+                                  return_parts=return_parts)
     cam = scene.camera
     height, width, cell = cam.height, cam.width, int(cell)
     xy, (hc, wc) = _pixel_layout(height, width, cell)
     dtype = cam.eye.dtype
     frame = shade_frame(scene, shadow_map=shadow_map, surface_shadows=surface_shadows, fog_nodes=fog_nodes,
-                        dirs=cam.ray_direction(xy.astype(dtype)))
+                        dirs=cam.ray_direction(jnp.asarray(xy, dtype)))
     # the nodes: pixels (cell i, cell j) for i <= hc, j <= wc
     ny, nx = jnp.meshgrid(jnp.arange(hc + 1, dtype=dtype) * cell, jnp.arange(wc + 1, dtype=dtype) * cell,
                           indexing="ij")
@@ -116,18 +150,15 @@ def render_adaptive(scene: ShaftsScene, *, samples: int = 24, map_taps: int = 2,
     node_t = jnp.where(jnp.isfinite(node_t), node_t, FAR)
 
     weights = _interp_weights(cell, dtype)
-    # depth jumps inside a cell: a pixel's depth off the bilinear interpolation of its corners'
-    # (relative), or a corner or pixel seeing nothing while another sees a surface
-    pixel_t = jax.lax.stop_gradient(frame.surface_t)
+    # silhouettes: a pixel's depth off the bilinear interpolation of its cell's corners' depths
     lerp_t = _lerp(weights, _corners(jax.lax.stop_gradient(node_t)))
-    jump = jnp.any(jnp.abs(pixel_t - lerp_t) > tolerance * jnp.minimum(pixel_t, lerp_t), axis=1)
+    pixel_t = jax.lax.stop_gradient(frame.surface_t)
+    jump = jnp.any(jnp.abs(pixel_t - lerp_t) > DEPTH_JUMP * jnp.minimum(pixel_t, lerp_t), axis=1)
 
     scatters = list(light_scatter_fns(scene, frame, samples=samples, map_taps=map_taps))
-    node_v, node_in_cone = [], []
+    node_v = []
     for light, (scatter, reach) in zip(scene.lights, scatters):
-        t0, t1 = cone_intervals(scene, light, node_dirs, jnp.full_like(node_t, FAR), reach)
-        node_in_cone.append(t1 > t0)  # the ray crosses the cone, whatever surface it meets
-        t1 = jnp.maximum(jnp.minimum(t1, node_t), t0)
+        t0, t1 = cone_intervals(scene, light, node_dirs, node_t, reach)
         node_v.append(active_rays_map(scatter, node_dirs, t0, t1, chunk=chunk))
     total = sum(node_v)
     threshold = tolerance * jax.lax.stop_gradient(jnp.sqrt(jnp.mean(total * total)))
@@ -135,11 +166,13 @@ def render_adaptive(scene: ShaftsScene, *, samples: int = 24, map_taps: int = 2,
     chunk_runs = max(1, chunk // (cell * cell))
     image = frame.surface + _lerp(weights, _corners(total))
     parts, refined = [], []
-    for light, (scatter, reach), v, in_cone in zip(scene.lights, scatters, node_v, node_in_cone):
-        bends = _corners(_bends(jax.lax.stop_gradient(v)))  # (cells, 4)
-        crossed = jnp.any(_corners(in_cone), axis=1)
-        flag = (jnp.max(bends, axis=1) > 4.0 * threshold) | (jump & crossed)
-        refined.append(jnp.mean(flag.astype(dtype)))
+    for light, (scatter, reach), v in zip(scene.lights, scatters, node_v):
+        v_fixed = jax.lax.stop_gradient(v)
+        bend_error = 0.25 * jnp.max(_corners(_bends(v_fixed)), axis=1)
+        # seen around the cell: a node behind a silhouette's near side sees none of the light
+        lit = jnp.any(_corners(_dilate(jnp.max(v_fixed, axis=-1) > 0)), axis=1)
+        flag = (bend_error > threshold) | (jump & lit)
+        refined.append(flag.reshape((hc, wc)))
 
         def correction(valid, dirs, surface_t, corners, light=light, scatter=scatter, reach=reach):
             n = dirs.shape[0]
@@ -163,5 +196,5 @@ def render_adaptive(scene: ShaftsScene, *, samples: int = 24, map_taps: int = 2,
     if return_parts:
         extra += ((surface, parts),)
     if return_refined:
-        extra += (jnp.stack(refined),)
+        extra += (jnp.stack(refined, axis=-1),)
     return (out,) + extra if extra else out

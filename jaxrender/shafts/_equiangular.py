@@ -413,14 +413,15 @@ def _light_scatters(scene: ShaftsScene, frame: Frame, *, samples: int, map_taps:
 
 
 def equiangular_ladder(scene: ShaftsScene, groups: tuple[tuple[int, ...], ...], reference: int, *,
-                       shadow_map: int | None = 512,
+                       shadow_map: int | None = 512, map_taps: int = 1,
                        fog_nodes: int | tuple[int, int] | None = None, **_unused
                        ) -> tuple[list[Float[Array, "H W 3"]], Float[Array, "H W 3"]]:
     """The in-scattered light of `scene` at each sample count of `groups` and at `reference`
-    samples, as `render_equiangular` renders it, sharing the rays, maps and volumes: what
-    `choose_counts` measures on its proxy. The counts of a group share one compiled kernel of
-    `max(group)` slots (the first n used, under `lax.map`); every ray is evaluated (no pruning:
-    proxies are small). Returns (images in the order of the groups' counts, the reference)."""
+    samples, as `render_equiangular` renders it (`map_taps` light-map taps a sample), sharing the
+    rays, maps and volumes: what `choose_counts` measures on its proxy. The counts of a group share
+    one compiled kernel of `max(group)` slots (the first n used, under `lax.map`); every ray is
+    evaluated (no pruning: proxies are small). Returns (images in the order of the groups' counts,
+    the reference)."""
     frame = shade_frame(scene, shadow_map=shadow_map, surface_shadows="map", fog_nodes=fog_nodes)
     images = []
     for group in groups:
@@ -428,22 +429,23 @@ def equiangular_ladder(scene: ShaftsScene, groups: tuple[tuple[int, ...], ...], 
 
         def at_count(n, capacity=capacity):
             return sum(scatter(frame.dirs, t0, t1, count=n)
-                       for scatter, t0, t1 in _light_scatters(scene, frame, samples=capacity))
+                       for scatter, t0, t1 in _light_scatters(scene, frame, samples=capacity, map_taps=map_taps))
 
         images += list(jax.lax.map(at_count, jnp.asarray(group, dtype=frame.dirs.dtype)))
     ref = sum(scatter(frame.dirs, t0, t1) for scatter, t0, t1 in _light_scatters(scene, frame, samples=reference,
-                                                                                bake=bake))
+                                                                                map_taps=map_taps))
     return images, ref
 
 
-def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int | None = 512,
+def render_equiangular(scene: ShaftsScene, *, samples: int = 24, map_taps: int = 1, shadow_map: int | None = 512,
                        surface_shadows: str = "map", chunk: int = 8192, prune: bool = True,
                        fog_nodes: int | tuple[int, int] | None = None,
                        return_parts: bool = False
                        ) -> Float[Array, "H W 3"]:
     """Render `scene` (H, W, 3 linear RGB): surfaces (shadow rays, two-sided Lambert, extinction)
     plus every light's in-scattering by `equiangular_scattering` with `samples` per pixel and light
-    (24: about 1 % relative RMS on the five-spot stage; 16: about 2.4 %).
+    and `map_taps` light-map taps a sample, at every pixel (`render_adaptive`, the default method,
+    evaluates it at the pixels that need it).
 
     shadow_map: shadow-map resolution, default 512 (None: the scene's `render.shadow_map`, the
     plane method's setting, 1024 by default). On the five-spot stage the in-scattering error is the
@@ -454,13 +456,14 @@ def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int
     shadow rays, as the ray march; ~5x the cost of the surface pass).
     prune: evaluate each light only on the rays that pass through its cone in front of the visible
     surface (`active_rays_map`, in chunks of `chunk` rays); prune=False evaluates every pixel in one
-    vectorized pass (same image; a smaller graph for tiny images and tests). fog_nodes: (directions across, distances) of
-    a density grid's optical-depth volumes, or one number for both (default `volume_nodes`). return_parts: also return
-    (surface, per-light in-scattering list). Jittable, differentiable; no retrace when light or medium values change.
+    vectorized pass (same image; a smaller graph for tiny images and tests). fog_nodes: (directions
+    across, distances) of a density grid's optical-depth volumes, or one number for both (default
+    `volume_nodes`). return_parts: also return (surface, per-light in-scattering list). Jittable,
+    differentiable; no retrace when light or medium values change.
     """
     frame = shade_frame(scene, shadow_map=shadow_map, surface_shadows=surface_shadows, fog_nodes=fog_nodes)
     per_light, image = [], frame.surface
-    for scatter, t0, t1 in _light_scatters(scene, frame, samples=samples):
+    for scatter, t0, t1 in _light_scatters(scene, frame, samples=samples, map_taps=map_taps):
         if not prune:
             per_light.append(scatter(frame.dirs, t0, t1))
         elif return_parts:
