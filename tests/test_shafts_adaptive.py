@@ -103,6 +103,24 @@ def test_no_halo_at_silhouettes():
     assert _rel(ad, ref) <= _TARGET, _rel(ad, ref)
 
 
+def test_no_halo_at_silhouettes_float32():
+    """The same in float32 (the benchmarks' precision): within 2 pixels of a depth edge the
+    in-scattered light is within the target of the float64 ray march, and every pixel of the band
+    lies in a refined cell (the depth-jump test sees the silhouette in float32 too)."""
+    _, _, ref, _ = _renders()
+    band = _depth_edge_band(_edge_scene())
+    with jax.enable_x64(False):
+        scene32 = _scene(width=W, height=H, eye=(1.5, 1.0, 5.0), shadow_map=512)
+        out = jax.jit(lambda s: render_adaptive(s, return_parts=True, return_refined=True))(scene32)
+        assert out[0].dtype == jnp.float32
+        fog32, refined32 = np.asarray(sum(out[1][1]), np.float64), np.asarray(out[2])[..., 0]
+    assert np.all(np.isfinite(fog32))
+    assert _rel(fog32, ref, band) <= _TARGET, _rel(fog32, ref, band)
+    cells = np.kron(refined32, np.ones((4, 4), bool))[:H, :W]
+    lit_band = band & (np.abs(ref).max(axis=-1) > 1e-3 * np.abs(ref).max())
+    assert lit_band.sum() > 100 and np.all(cells[lit_band]), (lit_band.sum(), (~cells[lit_band]).sum())
+
+
 def test_interpolation_error_stays_within_its_tolerance():
     """Against the equiangular method at every pixel (the same rays), the interpolated cells cost
     less than the tolerance's share: with the default 5 % of the RMS per cell, a fraction of that

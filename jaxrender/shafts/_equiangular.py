@@ -19,10 +19,11 @@ apex, where a ray march needs many uniform samples in t, phi steps are automatic
 Per sample: the local light direction w = cos(phi) m + sin(phi) d (m the unit vector from L to the
 closest point, both in the light's frame; cos/sin by a polynomial, no libm call), the falloff
 (polynomial arctan), ONE nearest-texel fetch of the shadow-map depth and, for a textured light,
-ONE nearest-texel fetch of the light map pre-filtered onto a grid `bake` times finer than the map
-(bilinear at the finer texel centres: one bilinear evaluation per fine texel per frame, not four
-fetches per sample). Cost per pixel and light: `samples` x (about 60 flops, one exp, one or two
-gathers); only the rays that enter a light's cone are evaluated for it (`active_rays_map`).
+`map_taps` nearest-texel fetches of the light map's mip pyramid (`light.mips`, built once when the
+light is made) at the level of the pixel's footprint seen from the light (so a 1024^2 map costs a
+frame what a 64^2 one does: the gathers, not the map, cost). Cost per pixel and light: `samples` x
+(about 60 flops, one exp, 1 + map_taps gathers); only the rays that enter a light's cone are
+evaluated for it (`active_rays_map`).
 
 Fog with a density grid (issue 24): each sample also needs d(P) (a trilinear lookup of the
 grid), the optical depth toward the light (the light's `DepthVolume`, indexed by the same uv as
@@ -34,9 +35,10 @@ fog's; a grid of ones reproduces it to rounding. See docs/fog.md.
 
 Surfaces: two-sided Lambert with extinction (`surface_term`), shadowed by the same shadow maps
 (`shadow_map_visibility`, the plane method's slope-scaled lookup) or, on request, by exact shadow
-rays. Gradients flow to rho, kappa, K, intensity, the light's pose (geometry, falloff,
-interval ends) and the light-map values; not through the shadow map (no gradient by design) nor
-through the light map's uv (nearest fetch of the baked map).
+rays. Gradients flow to rho, kappa, K, intensity and the light's pose (geometry, falloff,
+interval ends); not through the shadow map (no gradient by design), the light map's uv (nearest
+fetches); to the light map's texels only through a light made inside the differentiated function
+(its pyramid is built when the light is made: `SpotLight.with_light_map`).
 """
 
 from __future__ import annotations
