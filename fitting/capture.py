@@ -146,7 +146,10 @@ class Capture:
         """`H W` bool: the texels to fit (all when the capture has no mask)."""
         if self.mask is None:
             return np.ones(self.size, bool)
-        return np.any(read_image(self.mask, srgb=False)[..., :3] > 0, axis=-1)
+        mask = np.any(read_image(self.mask, srgb=False)[..., :3] > 0, axis=-1)
+        if not mask.any():
+            raise CaptureError([f"{self.mask}: no texel is on the object (the mask is all zero): nothing to fit"])
+        return mask
 
     def read_codes(self, path: str | os.PathLike) -> np.ndarray:
         """One image as float32 `H W 3`: integer codes / full scale (not linearised: saturation is

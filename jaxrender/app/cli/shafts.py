@@ -14,10 +14,11 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxrender.io import InputError, write_image
+from jaxrender.io import InputError, output_file, write_image
 from jaxrender.shafts import DEFAULT_METHOD, METHODS, choose_counts, render
 
 from ..scenes import check_image_size, load_shafts_scene
+from .arguments import number
 from .timed import add_time_argument, render_timed
 
 
@@ -40,7 +41,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--samples", type=int, default=None,
                         help="samples along each view ray and light: equiangular (default 24) and raymarch "
                              "(default 180); see --spp for samples per pixel")
-    parser.add_argument("--error", type=float, default=None, metavar="E",
+    parser.add_argument("--error", type=number, default=None, metavar="E",
                         help="choose --samples (or --planes and --subplanes) so that the in-scattered light is "
                              "predicted within relative RMS E of the converged result (e.g. 0.02), from a quick "
                              "estimate on a small proxy of the scene; the choice is printed")
@@ -48,9 +49,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    out = Path(args.out)
-    if out.suffix.lower() not in (".exr", ".png"):
-        raise InputError(out, "output must end in .exr or .png")
+    out = output_file(args.out, suffixes=(".exr", ".png"), inputs=[args.scene])
     if args.method != "planes" and args.quantize_bits:
         raise InputError(None, "--quantize-bits applies to --method planes only "
                                "(the other methods are unquantized)")

@@ -9,7 +9,7 @@ import jax
 from fitting import Sensor, synth_capture
 from jaxrender.errors import InputError
 
-from .arguments import non_negative, positive_int
+from .arguments import non_negative, number, positive_int
 
 
 def _lights(value: str):
@@ -38,9 +38,9 @@ def configure(parser):
                         help="PNG response curve (default linear; EXR is always linear)")
     parser.add_argument("--noise", type=non_negative, default=1.0,
                         help="scale of the shot and read noise (0 = noiseless; default 1)")
-    parser.add_argument("--full-well", type=float, default=20000.0, help="electrons at full scale (default 20000)")
+    parser.add_argument("--full-well", type=number, default=20000.0, help="electrons at full scale (default 20000)")
     parser.add_argument("--read-noise", type=non_negative, default=10.0, help="read noise in electrons (default 10)")
-    parser.add_argument("--white", type=float, default=0.95, help="white board reflectance (default 0.95)")
+    parser.add_argument("--white", type=number, default=0.95, help="white board reflectance (default 0.95)")
     parser.add_argument("--model", choices=("reciprocal", "paper"), default="reciprocal",
                         help="model form the images are rendered with (default reciprocal)")
 

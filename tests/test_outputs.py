@@ -1,0 +1,107 @@
+"""What a command may do to its outputs (`jaxrender.io.output_file`, `output_folder`,
+`check_finite`): write the files it names, each whole, keep every other file, change nothing when
+it fails, and never write a value that is not finite."""
+
+import os
+import stat
+
+import numpy as np
+import pytest
+
+from jaxrender.errors import InputError, NonFiniteOutput
+from jaxrender.io import check_finite, output_file, output_folder, write_exr, write_png
+
+
+def _tree(folder):
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+@pytest.fixture
+def user_folder(tmp_path):
+    """A folder of the user's: notes, photos, and a frame from an earlier run."""
+    folder = tmp_path / "mine"
+    (folder / "photos").mkdir(parents=True)
+    (folder / "notes.txt").write_text("mine")
+    (folder / "photos" / "a.jpg").write_bytes(b"jpeg")
+    (folder / "frame_000.png").write_bytes(b"old frame")
+    return folder
+
+
+def test_folder_keeps_other_files_and_replaces_its_own(user_folder):
+    with output_folder(user_folder) as stage:
+        assert stage.parent == user_folder and stage.name.startswith(".")
+        (stage / "frame_000.png").write_bytes(b"new frame")
+        (stage / "photos").mkdir()
+        (stage / "photos" / "b.jpg").write_bytes(b"new")
+        (stage / "meshes").mkdir()
+        (stage / "meshes" / "m.obj").write_text("v 0 0 0\n")
+    assert _tree(user_folder) == ["frame_000.png", "meshes", "meshes/m.obj", "notes.txt", "photos", "photos/a.jpg",
+                                  "photos/b.jpg"]
+    assert (user_folder / "frame_000.png").read_bytes() == b"new frame"
+    assert (user_folder / "notes.txt").read_text() == "mine"
+
+
+def test_folder_is_unchanged_when_the_command_fails(user_folder):
+    before = {p: p.read_bytes() for p in user_folder.rglob("*") if p.is_file()}
+    with pytest.raises(RuntimeError), output_folder(user_folder) as stage:
+        (stage / "frame_000.png").write_bytes(b"half")
+        raise RuntimeError("the render failed")
+    assert {p: p.read_bytes() for p in user_folder.rglob("*") if p.is_file()} == before
+
+
+def test_current_folder(user_folder, monkeypatch):
+    monkeypatch.chdir(user_folder)
+    with output_folder(".") as stage:
+        (stage / "noh.gif").write_bytes(b"gif")
+    assert _tree(user_folder) == ["frame_000.png", "noh.gif", "notes.txt", "photos", "photos/a.jpg"]
+
+
+def test_new_folder_appears_only_on_success(tmp_path):
+    out = tmp_path / "a" / "b"
+    with pytest.raises(KeyboardInterrupt), output_folder(out) as stage:
+        (stage / "x").write_text("x")
+        raise KeyboardInterrupt
+    assert not (tmp_path / "a").exists()
+    old = os.umask(0o022)
+    try:
+        with output_folder(out) as stage:
+            (stage / "x").write_text("x")
+    finally:
+        os.umask(old)
+    assert _tree(out) == ["x"] and stat.S_IMODE(os.stat(out).st_mode) == 0o755
+
+
+def test_conflicts_and_inputs_are_refused_before_anything_moves(user_folder):
+    with pytest.raises(InputError, match="is a folder where the command writes a file"), \
+            output_folder(user_folder) as stage:
+        (stage / "new.png").write_bytes(b"x")
+        (stage / "photos").write_bytes(b"a file where the user has a folder")
+    with pytest.raises(InputError, match="is an input of this command"), \
+            output_folder(user_folder, inputs=[user_folder / "notes.txt"]) as stage:
+        (stage / "notes.txt").write_text("overwritten")
+    assert (user_folder / "notes.txt").read_text() == "mine" and not (user_folder / "new.png").exists()
+    with pytest.raises(InputError, match="not a folder"), output_folder(user_folder / "notes.txt"):
+        pass
+
+
+def test_output_file_checks(user_folder):
+    assert output_file(user_folder / "x.png", suffixes=(".png",)) == user_folder / "x.png"
+    for path, suffixes, inputs, needle in [
+            (user_folder, (), (), "is a folder"),
+            (user_folder / "x.jpg", (".png", ".exr"), (), "must end in .png or .exr"),
+            (user_folder / "nowhere" / "x.png", (), (), "does not exist"),
+            (user_folder / "notes.txt", (), [user_folder / "notes.txt"], "is an input")]:
+        with pytest.raises(InputError, match=needle):
+            output_file(path, suffixes=suffixes, inputs=inputs)
+    assert output_file(user_folder / "new" / "x.json", make_folder=True).name == "x.json"
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_writers_refuse_values_that_are_not_finite(tmp_path, bad):
+    image = np.full((4, 4, 3), 0.5, np.float32)
+    image[1, 2, 0] = bad
+    for writer, name in ((write_png, "x.png"), (write_exr, "x.exr")):
+        with pytest.raises(NonFiniteOutput, match="1 of 48 values"):
+            writer(tmp_path / name, image)
+    assert list(tmp_path.iterdir()) == []
+    check_finite(np.arange(3), tmp_path / "ints.npy")   # integers are always finite
