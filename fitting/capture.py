@@ -425,7 +425,7 @@ def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, h
         dirs, names, intensities, exr = _lights(doc, None if exposures is None else len(exposures), root, images)
     finally:
         images.close()
-    if not white_fields.valid and intensities is None and doc.has("lights"):
+    if not white_fields.valid and intensities is None and len(names) > 0:   # (no lights: noted above)
         doc.problem("white", "missing (a capture needs a white board unless every light carries an intensity)")
     exr |= {name.lower().endswith(".exr") for name in white_names or ()}
     if len(exr) > 1:

@@ -240,7 +240,7 @@ def read_bvh(path: str | os.PathLike) -> BVHMotion:
             raise InputError(path, f"line {k + 1}: a channel value is beyond float32's range, in which the toolkit "
                                    "computes")
         rows.append(row)
-    if len(rows) < frames:
+    if len(rows) < frames and width:   # (no channels at all: a frame is an empty line, blank lines are frames)
         raise InputError(path, f"line {len(lines)}: Frames: {frames} but the file ends after {len(rows)} motion lines")
     motion = np.stack(rows) if width else np.zeros((frames, 0))
     return BVHMotion(tuple(out["names"]), tuple(out["parents"]), np.asarray(out["offsets"], np.float64),

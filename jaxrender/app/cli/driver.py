@@ -17,6 +17,7 @@ import logging
 import os
 import sys
 import traceback
+import warnings
 from collections.abc import Sequence
 from types import ModuleType
 
@@ -128,6 +129,9 @@ def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
     except UsageError as error:
         print(error, file=sys.stderr)
         return EXIT_INPUT
+    shown = warnings.showwarning
+    # a warning is one line too, naming the command (Python's shows the source line below it)
+    warnings.showwarning = lambda message, *rest, **kw: print(f"{prog} {name}: warning: {message}", file=sys.stderr)
     try:
         return int(module.run(args) or 0)
     except KeyboardInterrupt:
@@ -141,5 +145,8 @@ def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
             # chunk writes) must not add their own at exit
             logging.getLogger("asyncio").disabled = True
         code, text = describe_failure(error, _output_of(args), options=vars(args))
-        print(f"{prog} {name}: error: {text}", file=sys.stderr)
+        for line in text.splitlines() or [""]:   # one line per problem, each naming the command
+            print(f"{prog} {name}: error: {line}", file=sys.stderr)
         return code
+    finally:
+        warnings.showwarning = shown

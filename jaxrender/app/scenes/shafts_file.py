@@ -258,7 +258,7 @@ def shafts_scene_from_dict(d: Any, *, base_dir: str | os.PathLike = ".",
     lights = [_spotlight(f, Path(base_dir)) for f in light_items]
     if doc.has("spotlights") and isinstance(doc.raw("spotlights"), list) and not doc.raw("spotlights"):
         doc.problem("spotlights", "at least one spot light is needed")
-    spheres, quads = _objects(doc.items("objects"))
+    spheres, quads = _objects(doc.items("objects", required=False))  # none: shafts in empty fog
     doc.problems.check()
     check_image_size(camera.width, camera.height, render.spp, source=source)
     return ShaftsScene(camera, medium, lights, spheres, quads, render, source=os.fspath(source))
