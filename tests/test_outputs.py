@@ -105,3 +105,80 @@ def test_writers_refuse_values_that_are_not_finite(tmp_path, bad):
             writer(tmp_path / name, image)
     assert list(tmp_path.iterdir()) == []
     check_finite(np.arange(3), tmp_path / "ints.npy")   # integers are always finite
+
+
+def _capture(root):
+    """A valid 4 x 4 capture of 3 lights (the ingest's input)."""
+    from capture_helpers import write_capture
+
+    (root / "images").mkdir(parents=True)
+
+    def image(name):
+        write_png(root / name, np.full((4, 4, 3), 0.5), srgb=False)
+        return name
+
+    return write_capture(root, image, size=(4, 4), ext="png", lights=3, exposures_s=[1.0], angle_step=(10.0, 30.0))
+
+
+# every command that writes one file, with an existing folder (or the current one) where the file goes
+FILE_COMMANDS = [
+    ("jaxrender", ["shafts", "{scene}", "--out", "{out}"]),
+    ("jaxrender", ["desert", "--out", "{out}"]),
+    ("fitting", ["relight", "{folder}", "--theta", "10", "--phi", "0", "--out", "{out}"]),
+    ("fitting", ["report", "{folder}", "{folder}", "--out", "{out}"]),
+    ("fitting", ["manifest", "{folder}", "--out", "{out}"]),
+    ("sims", ["ripples", "--out", "{out}"]),
+    ("sims", ["dunes", "--out", "{out}"]),
+    ("sims", ["ripples", "--out", "{folder}/f.npy", "--preview", "{out}"]),
+]
+
+
+@pytest.mark.parametrize("program, argv", FILE_COMMANDS, ids=lambda v: v if isinstance(v, str) else " ".join(v[:1]))
+@pytest.mark.parametrize("where", ["folder", "current folder"])
+def test_file_commands_refuse_a_folder_and_keep_its_files(tmp_path, monkeypatch, capsys, user_folder, program, argv,
+                                                          where):
+    from jaxrender.app.cli.programs import fitting_main, jaxrender_main, sims_main
+
+    main = {"jaxrender": jaxrender_main, "fitting": fitting_main, "sims": sims_main}[program]
+    before = {p: p.read_bytes() for p in user_folder.rglob("*") if p.is_file()}
+    monkeypatch.chdir(user_folder)
+    out = "." if where == "current folder" else str(user_folder)
+    scene = tmp_path / "scene.json"
+    scene.write_text("{}")
+    args = [a.format(out=out, folder=user_folder, scene=scene) for a in argv]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "error:" in err[0] and "Traceback" not in err[0], err
+    assert {p: p.read_bytes() for p in user_folder.rglob("*") if p.is_file()} == before
+
+
+def test_ingest_refuses_a_folder_of_the_users_and_keeps_its_files(tmp_path, monkeypatch, capsys, user_folder):
+    from jaxrender.app.cli.programs import fitting_main
+
+    capture = _capture(tmp_path / "capture")
+    before = {p: p.read_bytes() for p in user_folder.rglob("*") if p.is_file()}
+    monkeypatch.chdir(user_folder)
+    for store in (".", str(user_folder)):
+        assert fitting_main(["ingest", str(capture), "--store", store]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "is not an observation store" in err[0], err
+    assert {p: p.read_bytes() for p in user_folder.rglob("*") if p.is_file()} == before
+    assert not [p for p in user_folder.iterdir() if p.name.startswith(".")]
+
+
+def test_manifest_never_writes_over_its_own_input(tmp_path, capsys):
+    """`fitting manifest DIR --out DIR/filenames.txt` (or over an image, or the CSV) is refused."""
+    from jaxrender.app.cli.programs import fitting_main
+
+    folder = tmp_path / "object"
+    folder.mkdir()
+    write_png(folder / "001.png", np.full((3, 3, 3), 0.5))
+    (folder / "filenames.txt").write_text("001.png\n")
+    (folder / "light_directions.txt").write_text("0 0 1\n")
+    (folder / "light_intensities.txt").write_text("1 1 1\n")
+    before = {p: p.read_bytes() for p in folder.iterdir()}
+    for target in ("filenames.txt", "001.png", "light_directions.txt"):
+        assert fitting_main(["manifest", str(folder), "--out", str(folder / target)]) == 2
+        assert "is an input of this command" in capsys.readouterr().err
+    assert {p: p.read_bytes() for p in folder.iterdir()} == before
+    assert fitting_main(["manifest", str(folder), "--out", str(folder / "capture.json")]) == 0   # beside them: fine
