@@ -145,15 +145,15 @@ def fit_report(capture_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, ou
     import matplotlib.pyplot as plt
 
     capture = load_capture(capture_dir)
+    if holdout is not None and not 2 <= holdout <= capture.n_lights:
+        raise InputError(capture_dir, f"--holdout {holdout}: hold out every k-th light with 2 <= k <= "
+                                      f"{capture.n_lights} (the capture's lights)")
     texels, model = load_btf_texels(btf_dir)
     if obs is None:
         obs = merge_capture(capture, progress=False)
     if tuple(texels.rho_d.shape[:2]) != tuple(obs.size):
         raise InputError(Path(btf_dir) / "level_00.exr",
                          f"size {list(texels.rho_d.shape[:2])} differs from the capture's {list(obs.size)}")
-    if holdout is not None and not 2 <= holdout <= obs.n_lights:
-        raise InputError(capture_dir, f"--holdout {holdout}: hold out every k-th light with 2 <= k <= "
-                                      f"{obs.n_lights} (the capture's lights)")
     gt = None if normals is None else read_normal_map(normals, obs.size)
     _, levels = read_btf(btf_dir)
     level0 = levels[0]

@@ -2,6 +2,7 @@
 `check_finite`): write the files it names, each whole, keep every other file, change nothing when
 it fails, and never write a value that is not finite."""
 
+import json
 import os
 import stat
 
@@ -182,3 +183,48 @@ def test_manifest_never_writes_over_its_own_input(tmp_path, capsys):
         assert "is an input of this command" in capsys.readouterr().err
     assert {p: p.read_bytes() for p in folder.iterdir()} == before
     assert fitting_main(["manifest", str(folder), "--out", str(folder / "capture.json")]) == 0   # beside them: fine
+
+
+def test_report_and_fit_refuse_what_they_cannot_measure(tmp_path, capsys):
+    """`fitting report --holdout K` with K beyond the capture's lights, and a capture whose mask
+    selects no texel: one line, exit code 2, nothing written."""
+    from jaxrender.app.cli.programs import fitting_main
+
+    capture = _capture(tmp_path / "capture")
+    assert fitting_main(["report", str(capture), str(tmp_path / "btf"), "--holdout", "100"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--holdout 100: hold out every k-th light with 2 <= k <= 3" in err[0], err
+    write_png(capture / "mask.png", np.zeros((4, 4, 3)), srgb=False)
+    manifest = json.loads((capture / "capture.json").read_text())
+    (capture / "capture.json").write_text(json.dumps({**manifest, "mask": "mask.png"}))
+    btf = tmp_path / "btf"
+    assert fitting_main(["fit", str(capture), "--out", str(btf)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the mask is all zero" in err[0], err
+    assert not btf.exists()
+
+
+def _twice_the_memory() -> str:
+    """A grid side whose automaton needs about twice this machine's memory (within int32 indexing)."""
+    from jaxrender.app.cli.arguments import physical_memory
+    from jaxrender.app.cli.fields import BYTES_PER_CELL
+
+    side = int((2 * physical_memory() / BYTES_PER_CELL) ** 0.5)
+    assert side**2 < 2**31, "this machine has more memory than the kernels can index: pick another case"
+    return str(side)
+
+
+@pytest.mark.parametrize("argv, code, needle", [
+    (["ripples", "--size", "100000x100000"], 2, "beyond what the kernels index"),
+    (["ripples", "--size", "TWICE"], 3, "out of memory (--size"),
+    (["dunes", "--size", "3000000000"], 2, "beyond what the kernels index"),
+])
+def test_sizes_are_checked_before_allocation(tmp_path, capsys, argv, code, needle):
+    from jaxrender.app.cli.programs import sims_main
+
+    argv = [_twice_the_memory() if a == "TWICE" else a for a in argv]
+    out = tmp_path / "f.npy"
+    assert sims_main(argv + ["--out", str(out)]) == code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0] and "--memory-gb" not in err[0], err
+    assert not out.exists()

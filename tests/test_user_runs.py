@@ -28,6 +28,7 @@ from jaxrender.brdf import BTFTexel
 from jaxrender.io import read_btf, read_exr
 
 SCRIPTS = Path(sys.executable).parent  # console scripts are installed beside the interpreter
+MOCAP = Path(os.environ.get("JAXRENDER_MOCAP", Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"))
 HANG_GUARD_S = 1800  # a hung run fails the test instead of the suite; not a speed assertion
 
 # `sims ripples` / `sims dunes` in float32 over 10,000 steps: the issue's bound on the drift of the
@@ -144,13 +145,27 @@ def assert_kept(kept: dict[Path, bytes]) -> None:
         assert path.read_bytes() == content, f"{path} was changed or removed"
 
 
+def relabelled_walk(path: Path) -> Path:
+    """The captured walk with its rotation channels relabelled X Y Z (the same numbers in another
+    order: a pose no one captured, limbs flung about), saved with a byte-order mark and CRLF line ends."""
+    clip = MOCAP / "walk_normal_001.bvh"
+    assert clip.is_file(), f"{clip}: the motion capture data is missing (set JAXRENDER_MOCAP)"
+    text = clip.read_text().replace("Zrotation Xrotation Yrotation", "Xrotation Yrotation Zrotation")
+    path.write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode())
+    return path
+
+
 def test_jaxrender_noh_small(tmp_path):
-    """Two 64 x 48 frames of the Noh scene, written with `--out .` into a folder of the user's (its
-    files stay): PNG + linear EXR per frame, the GIF and the MP4; the frames are pictures, and they
-    differ (the fires flicker) but show the same scene."""
+    """Two 64 x 48 frames of the Noh scene dancing an odd motion (a real walk with relabelled rotation
+    channels, BOM, CRLF), written with `--out .` into a folder of the user's that holds the motion
+    (its files stay): PNG + linear EXR per frame, the GIF and the MP4; the frames are pictures, and
+    they differ (the fires flicker) but show the same scene."""
     out = tmp_path / "noh"
     kept = users_folder(out)
-    proc = run("jaxrender", "noh", "--out", ".", "--frames", "2", "--width", "64", "--height", "48", cwd=out)
+    motion = relabelled_walk(out / "walk.bvh")
+    kept[motion] = motion.read_bytes()
+    proc = run("jaxrender", "noh", "--out", ".", "--motion", "walk.bvh", "--frames", "2", "--width", "64",
+               "--height", "48", cwd=out)
     assert "2 frames" in proc.stdout
     assert_kept(kept)
     assert not [p for p in out.iterdir() if p.name.startswith(".")]   # no staging folder left
