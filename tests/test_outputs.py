@@ -194,6 +194,10 @@ def test_report_and_fit_refuse_what_they_cannot_measure(tmp_path, capsys):
     assert fitting_main(["report", str(capture), str(tmp_path / "btf"), "--holdout", "100"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--holdout 100: hold out every k-th light with 2 <= k <= 3" in err[0], err
+    np.save(tmp_path / "zeros.npy", np.zeros((4, 4, 3)))
+    assert fitting_main(["report", str(capture), str(tmp_path / "btf"), "--normals", str(tmp_path / "zeros.npy")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "zeros.npy: no non-zero normal inside the capture's mask" in err[0], err
     write_png(capture / "mask.png", np.zeros((4, 4, 3)), srgb=False)
     manifest = json.loads((capture / "capture.json").read_text())
     (capture / "capture.json").write_text(json.dumps({**manifest, "mask": "mask.png"}))
