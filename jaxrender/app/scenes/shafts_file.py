@@ -268,6 +268,8 @@ def load_shafts_scene(path: str | os.PathLike) -> ShaftsScene:
     """Read and validate a light-shaft scene file (JSON, design.md); light maps and density grids
     are relative to it."""
     path = Path(path)
+    if path.is_dir():
+        raise InputError(path, "is a folder, not a scene file")
     if not path.is_file():
         raise InputError(path, "no such file")
     try:
