@@ -128,14 +128,18 @@ def scene_documents(draw, *, renderable: bool = False) -> Document:
         camera["up"] = cam["up"]
     files: dict[str, Callable[[Path], None]] = {}
     medium = {"rho": draw(magnitudes()), "kappa": draw(magnitudes()), "K": draw(magnitudes())}
+    peak = 1.0
     if draw(st.booleans()):
         shape = tuple(draw(st.lists(st.integers(1, 4), min_size=3, max_size=3)))
         grid = np.random.default_rng(draw(st.integers(0, 99))).random(shape) * draw(magnitudes(0.0, 1e30))
+        peak = float(grid.max())
         lo = draw(vectors)
         hi = [a + draw(magnitudes(0.0, 1e3, lo_open=True)) for a in lo]
         assume(all(b > a for a, b in zip(lo, hi)))
         files["fog.npy"] = lambda folder, g=grid: np.save(folder / "fog.npy", g)
         medium["density"] = {"grid": "fog.npy", "box_min": lo, "box_max": hi}
+    # the coefficients the renderer forms are float32 numbers too (docs/formats.md)
+    assume(medium["rho"] * medium["kappa"] * peak <= F32 and 10 * medium["rho"] * medium["K"] * peak <= F32)
     doc = {"camera": camera, "medium": medium}
     if draw(st.booleans()):   # render: optional, and each of its fields
         render = {}
@@ -218,6 +222,7 @@ SCENE_BREAKS = {   # one forbidden change each: (what, how)
     "target at the eye": lambda d: d["camera"].update(target=list(d["camera"]["eye"])),
     "negative rho": lambda d: d["medium"].update(rho=-1),
     "rho beyond float32": lambda d: d["medium"].update(rho=1e39),
+    "extinction beyond float32": lambda d: d["medium"].update(rho=1e20, kappa=1e20),
     "rho NaN": lambda d: d["medium"].update(rho=float("nan")),
     "unknown medium field": lambda d: d["medium"].update(sigma=1),
     "cutoff 90": lambda d: d["spotlights"][0].update(cutoff_deg=90),
