@@ -1,4 +1,4 @@
-"""Full desert frame (issue 3 section 4): 720 x 480, 64 x 64 dunes, ripple maps up to 64 x 64 per
+"""Full desert frame: 720 x 480, 64 x 64 dunes, ripple maps up to 64 x 64 per
 quad, LOD + culling, dune and ripple shadows, dust. Target: <= 2 s per frame after compilation.
 The peer in the same run is the same frame without culling and LOD (every quad at 64 x 64).
 

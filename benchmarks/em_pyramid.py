@@ -19,7 +19,7 @@ against a batched numpy implementation of the same EM, and agreement with scikit
     python benchmarks/em_pyramid.py --equal-cores    # only (d): JAX vs numpy at equal cores
     python benchmarks/em_pyramid.py --profile --cores 1   # where the time goes, pinned to one core
 
-(d) Equal cores (issue 16). (b) lets JAX use both cores while the numpy peer runs one thread. Here
+(d) Equal cores. (b) lets JAX use both cores while the numpy peer runs one thread. Here
     the whole woven pyramid is timed twice, interleaved with the peer, wall and CPU, min / median /
     max: pinned to core 0 with every library at one thread (JAX's CPU pools included), and free on
     both cores with the numpy peer split over two processes (benchmarks/_em_numpy.py,

@@ -155,7 +155,7 @@ def report(by_cores: dict[int, list[dict]], quick: bool) -> None:
                      notes="peer / ours > 1 means ours is faster; numba parallel=True at 2 cores, all pinned at 1 core",
                      figures={f"{s}_{c}": dict(wall_median=wm, wall_worst=wlo, wall_best=whi, cpu_median=cm, peer=p)
                               for s, c, o, p, wm, wlo, whi, cm, _ in verdicts}))
-    # issue 3's row: vs the numpy peer, both on one core (numpy has no threads)
+    # the numpy row: vs the numpy peer, both on one core (numpy has no threads)
     one = [r for r in by_cores.get(1, []) if r["size"] == 256 and "numpy slices" in r["wall"]]
     if one:
         ratios = [_ratio(r, "numpy slices", "jax search") for r in one]

@@ -1,4 +1,4 @@
-"""Ripple automaton speed (paper 001 eqs. 1-4, issue 3 section 4; issue 16: like with like).
+"""Ripple automaton speed (paper 001 eqs. 1-4; like with like).
 
 Ours (sims.simulate_ripples, a jitted scan; float32, the package default, and float64) against
 peers doing the same update (benchmarks/_ripples_ref.py: split hop along +x, amounts, shares and
@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _results import write_results  # noqa: E402
 from _ripples_ref import make_jax_roll_gather, make_numba_steps, numpy_step  # noqa: E402
 
-TARGET = 20.0  # issue 3: >= 20x numpy
+TARGET = 20.0  # >= 20x numpy
 
 
 def _timed(fn, steps):
@@ -189,7 +189,7 @@ def main(argv=None) -> int:
              measured=f"{rw[1]:.1f}x wall ({rw[0]:.1f}-{rw[2]:.1f}), {rc[1]:.1f}x CPU, ours float32 vs numpy "
                       f"float64, {cores} core(s)",
              status=verdict, figures={"wall_ratio_median": rw[1], "cpu_ratio_median": rc[1]},
-             notes=f"{cores_note}; both sides conserve sand exactly (issue 15); before that change, on the quiet "
+             notes=f"{cores_note}; both sides conserve sand exactly; before that change, on the quiet "
                    "machine: 7.0x wall, 5.3x CPU"),
         dict(issue="16 peers", target="ripple automaton vs numba, like with like (float64)",
              measured=f"{like_w[1]:.2f}x wall ({like_w[0]:.2f}-{like_w[2]:.2f}), {like_c[1]:.2f}x CPU vs numba on "

@@ -92,7 +92,7 @@ def exact_total(field) -> float:
 @pytest.mark.parametrize("command,low,high,extra", [("ripples", 1.0, 1.5, ["--L0", "9"]),
                                                     ("dunes", 2.0, 4.0, ["--wind-deg", "30"])])
 def test_sims_conserve_sand_over_10000_steps_float32(tmp_path, command, low, high, extra):
-    """Issue 15: `sims ripples` / `sims dunes` (float32, chunks of 100 steps with a progress bar) keep
+    """`sims ripples` / `sims dunes` (float32, chunks of 100 steps with a progress bar) keep
     the total of a 32 x 48 field to within 1e-6 over 10,000 steps; the features did grow."""
     init = np.random.default_rng(7).uniform(low, high, (32, 48)).astype(np.float32)
     np.save(tmp_path / "init.npy", init)
