@@ -90,7 +90,7 @@ def main(argv=None) -> int:
           f"R^2 {', '.join(f'{r:.3f}' for r in r2s)} (min {r2s.min():.3f})")
     verdict = "met" if r2s.min() >= 0.9 else "missed"
     write_results("ripples_wavelength", [
-        dict(issue="3 desert", target="wavelength linear in L0, R^2 >= 0.9",
+        dict(area="desert", target="wavelength linear in L0, R^2 >= 0.9",
              measured=f"lambda = {slope:.3f} L0 + {intercept:.3f} cells, R^2 = {r2:.3f} (seed 0); over seeds "
                       f"0-{args.seeds - 1} slope {slopes.min():.2f}-{slopes.max():.2f}, R^2 >= {r2s.min():.3f}",
              status=verdict, figures={"slope": slope, "intercept": intercept, "r2": r2,

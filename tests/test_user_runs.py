@@ -263,6 +263,8 @@ def test_gallery_quick_end_to_end(tmp_path):
     proc = run("jaxrender", "gallery", "--quick", "--out", out)
     assert "FAILED" not in proc.stdout
     assert_kept(kept)
+    # not a terminal: no progress bars, one line per entry as it is written
+    assert "\r" not in proc.stderr and "it/s" not in proc.stderr and "section/s" not in proc.stderr, proc.stderr
     result = json.loads((out / "gallery.json").read_text())
     assert result["quick"] is True
     assert set(result["sections"]) == set(SECTIONS)
@@ -272,6 +274,7 @@ def test_gallery_quick_end_to_end(tmp_path):
         assert section["entries"], f"{name}: no entries"
         for entry in section["entries"]:
             assert entry["title"] and entry["images"], (name, entry)
+            assert f"[gallery] {name}: wrote {', '.join(entry['images'])} (" in proc.stdout, proc.stdout
             for rel in entry["images"]:
                 assert rel.startswith(f"{name}/")
                 assert rel in page, f"index.html does not show {rel}"
