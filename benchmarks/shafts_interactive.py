@@ -65,7 +65,6 @@ TARGET = 0.02
 SPOT_LIMIT_S, STAGE_LIMIT_S, RAYMARCH_RATIO, GRAD_RATIO = 0.04, 0.17, 17.0, 5.0
 EDGE_JUMP = 0.05  # a depth edge: depth off the mean of its two row / column neighbours by > 5 % (as the halo test)
 FIGURES = HERE / "figures"
-TOPIC = "light shafts at interactive rates"
 
 
 def light_map_file(directory: Path, n: int) -> str:
@@ -237,10 +236,10 @@ def frames(args, w, h, directory, repeats):
         old_text = f"; equiangular at every pixel {describe(old)}" if old else ""
         if best is None:
             lowest = min(r["err"] for r in rows if r["scene"] == name and r["method"] == "adaptive")
-            results.append(dict(issue=TOPIC, target=target, status="missed",
+            results.append(dict(area="shafts", target=target, status="missed",
                                 measured=f"no adaptive setting reached 2 % (lowest {100 * lowest:.2f} %){old_text}"))
             continue
-        results.append(dict(issue=TOPIC, target=target, measured=f"adaptive {describe(best)}{old_text}",
+        results.append(dict(area="shafts", target=target, measured=f"adaptive {describe(best)}{old_text}",
                             status="met" if best["median_s"] <= limit else "missed"))
     if "stage" in scenes:
         ours, rm = cheapest(rows, "stage", "adaptive"), cheapest(rows, "stage", "raymarch")
@@ -251,11 +250,11 @@ def frames(args, w, h, directory, repeats):
                     f"{100 * ours['err']:.2f} % in {ours['median_s']:.3f} s)")
         else:
             ratio, text = 0.0, "no ratio: a method reached 2 % at none of its settings"
-        results.append(dict(issue=TOPIC, target=">= 17x the ray march at 2 % on the stage", measured=text,
+        results.append(dict(area="shafts", target=">= 17x the ray march at 2 % on the stage", measured=text,
                             status="met" if ratio >= RAYMARCH_RATIO else "missed"))
         edge = [r for r in rows if r["scene"] == "stage" and r["method"] == "adaptive"]
         if ours:
-            results.append(dict(issue=TOPIC, target="no halo: error within 2 px of a depth edge <= 2 % on the stage",
+            results.append(dict(area="shafts", target="no halo: error within 2 px of a depth edge <= 2 % on the stage",
                                 measured=f"{100 * ours['edge_err']:.2f} % within 2 px of depth edges "
                                          f"({100 * ours['err']:.2f} % over the image), adaptive {ours['samples']} "
                                          f"samples; at {', '.join(str(r['samples']) for r in edge)} samples: "
@@ -283,7 +282,7 @@ def maps(args, w, h, directory, repeats, samples):
     spread = max(r["median_s"] for r in rows) / min(r["median_s"] for r in rows)
     text = "; ".join(f"{r['n']}^2 {1e3 * r['median_s']:.0f} ms wall {1e3 * r['cpu_s']:.0f} ms CPU "
                      f"{100 * r['err']:.2f} %" for r in rows)
-    return [dict(issue=TOPIC, target=f"spot frame nearly independent of the light map's size (64^2-1024^2), {w}x{h}",
+    return [dict(area="shafts", target=f"spot frame nearly independent of the light map's size (64^2-1024^2), {w}x{h}",
                  measured=f"slowest / fastest {spread:.2f}x ({text}; adaptive {samples} samples)",
                  status="met" if spread <= 1.25 else "missed")]
 
@@ -328,7 +327,7 @@ def gradient(args, w, h, directory, repeats):
                          f"{ratios[name][0]:.2f}x | {ratios[name][1]:.2f}x | {c_g:.0f} | {os.getloadavg()[0]:.1f} |")
             print("  " + table[-1], flush=True)
         worst = max(ratios, key=lambda k: ratios[k][0])
-        results.append(dict(issue=TOPIC, target=f"gradient <= 5x forward for every parameter, {label}, {w}x{h}",
+        results.append(dict(area="shafts", target=f"gradient <= 5x forward for every parameter, {label}, {w}x{h}",
                             measured=", ".join(f"{k} {v[0]:.2f}x" for k, v in ratios.items())
                             + f" wall (CPU: {', '.join(f'{v[1]:.2f}x' for v in ratios.values())}); forward "
                               f"{1e3 * fwd:.0f} ms, adaptive 24 samples",
