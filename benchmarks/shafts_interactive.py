@@ -287,7 +287,7 @@ def maps(args, w, h, directory, repeats, samples):
                  status="met" if spread <= 1.25 else "missed")]
 
 
-def gradient(args, w, h, directory, repeats):
+def gradient(args, w, h, directory, repeats, save):
     rng = np.random.default_rng(0)
     weights = jnp.asarray(rng.uniform(0.5, 1.5, (h, w, 3)), dtype=jnp.float32)
     fog_dir = Path(tempfile.mkdtemp(dir=directory))
@@ -332,6 +332,7 @@ def gradient(args, w, h, directory, repeats):
                             + f" wall (CPU: {', '.join(f'{v[1]:.2f}x' for v in ratios.values())}); forward "
                               f"{1e3 * fwd:.0f} ms, adaptive 24 samples",
                             status="met" if ratios[worst][0] <= GRAD_RATIO else f"missed ({worst})"))
+        save(results[-1:])  # each fog's row as soon as it is measured (a grid-fog compile takes minutes)
     print("\n| fog | w.r.t. | forward s | value and gradient s | ratio wall | ratio CPU | compile s | load |\n"
           "|---|---|---|---|---|---|---|---|\n" + "\n".join(table))
     return results
@@ -357,19 +358,25 @@ def main(argv=None) -> int:
     repeats = 2 if args.quick else args.repeats
     print(f"{os.cpu_count()} CPU cores of {cpu_description()}, JAX {jax.__version__} ({jax.default_backend()}), "
           f"float32, {w}x{h}, load average {os.getloadavg()}", flush=True)
-    results, samples = [], 24
+    results, samples, saved = [], 24, []
+
+    def save(rows):  # rows written as each section ends: a full run replaces the file, a partial one updates it
+        results.extend(rows)
+        partial = bool(saved) or set(sections) != set(SECTIONS)
+        write_results("shafts_interactive", rows, quick=args.quick, update=partial)
+        saved.append(True)
+
     with tempfile.TemporaryDirectory() as tmp:
         directory = Path(tmp)
         if "frames" in sections:
             rows, samples = frames(args, w, h, directory, repeats)
-            results += rows
+            save(rows)
         if "maps" in sections:
-            results += maps(args, w, h, directory, repeats, samples)
+            save(maps(args, w, h, directory, repeats, samples))
         if "gradient" in sections and not args.quick:  # two compiles a parameter: tests/ check the gradients
-            results += gradient(args, w, h, directory, repeats)
+            gradient(args, w, h, directory, repeats, save)
     for r in results:
         print(f"{r['status']:>8s}  {r['target']}: {r['measured']}")
-    write_results("shafts_interactive", results, quick=args.quick, update=set(sections) != set(SECTIONS))
     return 0
 
 
