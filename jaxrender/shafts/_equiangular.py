@@ -1,4 +1,5 @@
-"""Fast single scattering: equiangular quadrature seen from each light (the default shafts method).
+"""Fast single scattering: equiangular quadrature seen from each light (the default method,
+`render_adaptive`, evaluates it where the image needs it; `render_equiangular` at every pixel).
 
 Along a view ray E + t d, let L be the light, t_p the parameter of the ray's closest approach to L
 and h that distance. Parametrize the ray by the angle phi it subtends at the light:
