@@ -40,21 +40,30 @@ tests first), as (ray, cluster) pairs in one vectorized pass, padded to powers o
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+import textwrap
 from dataclasses import dataclass
+from pathlib import Path
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrender.app.scenes.noh import default_btfs, noh_scene
 from jaxrender.app.scenes.noh.mask import LABELS, TAKES_COLOUR
-from jaxrender.app.scenes.noh.motion import STAGE_F0
+from jaxrender.app.scenes.noh.motion import STAGE_F0, grown, noh_frame_jit
 from jaxrender.app.scenes.noh.performer import performer_mesh
-from jaxrender.app.scenes.noh.rig import STAGE_ROUGHNESS
+from jaxrender.app.scenes.noh.rig import STAGE_ROUGHNESS, prepare_rig
 from jaxrender.app.scenes.noh.stage import BASKET, FLAME_BASE, MATERIALS, stage_albedo
 from jaxrender.fabric import fresnel_schlick, shade_fabric
+from jaxrender.io import BVHMotion, read_bvh
 from jaxrender.lights import env_radiance, sample_envmap, sample_quad_lights
 from jaxrender.textures import bilinear
+from sims import costume_frames, noh_dance
 
 FIRE_ROWS, FIRE_COLUMNS = 64, 8   # cells over each flame: rows of equal emitted power x columns
 FIRE_BLOCKS = (8, 2)              # ... grouped in blocks: the shadows of all but its basket, per block
@@ -151,7 +160,7 @@ def _irradiance(p, n, centres, emission, area, clear):
         p, n, clear = args
         d = centres[None] - p[:, None, None]
         g = jnp.maximum(jnp.einsum("nqmc,nc->nqm", d, n), 0.0) / jnp.sum(d * d, -1) ** 1.5 * area[None]
-        return jnp.einsum("nqm,qmc->nqc", g * clear, emission), jnp.einsum("nqm,qmc->nqc", g, emission)
+        return jnp.einsum("nqm,qmc->nqc", g * clear.astype(g.dtype), emission), jnp.einsum("nqm,qmc->nqc", g, emission)
     k = p.shape[0]
     pad = (-k) % 256
     grow = lambda a: jnp.concatenate([a, jnp.repeat(a[:1], pad, axis=0)]).reshape((-1, 256) + a.shape[1:])  # noqa: E731
@@ -676,3 +685,123 @@ def render_reference(scene, frame: Frame, *, roughness: float = STAGE_ROUGHNESS)
     grid = lambda a: a.reshape((h, w) + a.shape[1:])  # noqa: E731
     return Reference(grid(image), grid(lum), grid(state), grid(surface), grid(m_lum), grid(m_state), grid(m_surface),
                      grid(m_total), grid(perf), grid(mirrored_perf), grid(flames), grid(mirrored_flames), grid(polished))
+
+
+# ------------------------------------------------------------------------------ the cases compared
+
+MOCAP = Path(os.environ.get("JAXRENDER_MOCAP", Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"))
+CAPTURED = "dance-short_normal_001.bvh"
+CAPTURED_ROWS = slice(360, 421)     # 2 s of the captured dance: the right hand rises above the head
+FRAMES = {"built-in": (3, 27), "captured": (2, 13)}   # 27: the sleeve raised before the face; 13: the hand up
+SEED = 11
+
+
+def motion_of(label: str) -> tuple[BVHMotion, float]:
+    """The motion of a case and the seconds it lasts: the built-in dance in 4 s (the sleeve raised
+    from 2.1 s to 3.5 s), or 2 s of the captured dance."""
+    if label == "built-in":
+        return noh_dance(duration=4.0), 4.0
+    bvh = read_bvh(MOCAP / CAPTURED)
+    return BVHMotion(bvh.names, bvh.parents, bvh.offsets, bvh.channels, bvh.end_site, bvh.frame_time,
+                     bvh.motion[CAPTURED_ROWS]), 2.0
+
+
+def case_scene(label: str, width: int, height: int, **small):
+    """The scene of a case (`small`: `noh_scene` keywords, e.g. level-0 BTFs and small flames)."""
+    motion, duration = motion_of(label)
+    return noh_scene(width=width, height=height, frames=2, key=jax.random.key(SEED), motion=motion,
+                     duration=duration, **small)
+
+
+def keys(frame: int):
+    """(sky samples' key, frame key) of `render_sequence` with seed `SEED`."""
+    k_env, k_frames = jax.random.split(jax.random.key(SEED + 1))
+    return k_env, jax.random.fold_in(k_frames, frame)
+
+
+def state_before(scene, frame: int):
+    """The robe's state the frame starts from: `frame` frames of 0.1 s from the settled robe."""
+    costume, motion = scene.performer.costume, scene.performer.motion
+    if frame == 0:
+        return costume.state
+    _, state = eqx.filter_jit(lambda c, m: costume_frames(c, m, frames=frame, frame_dt=0.1))(costume, motion)
+    return state
+
+
+def production_frame(scene, frame: int, state, *, shadow_resolution: int):
+    """The production frame (`noh_frame`, its buffers grown as `render_sequence` grows them) from
+    `state`: (linear image, the robe's new state, the frame's counts)."""
+    k_env, key = keys(frame)
+    rig = prepare_rig(scene, key=k_env, shadow_resolution=shadow_resolution, frame_dt=0.1)
+    emission = scene.flames[:, frame % scene.flames.shape[1]]
+    while True:
+        image, new_state, counts = noh_frame_jit(scene, rig, state, emission, key)
+        bigger = grown(rig, counts)
+        if bigger is None:
+            return np.asarray(image, np.float64), new_state, counts
+        rig = bigger
+
+
+def reference_inputs(scene, frame: int, new_state) -> Frame:
+    k_env, key = keys(frame)
+    return frame_inputs(scene, new_state, scene.flames[:, frame % scene.flames.shape[1]], fire_key=key, env_key=k_env)
+
+
+# the float32 frames: rendered by a child Python without x64 (as users run), from the float64
+# states the frames start from; it saves each image and the Frame of its own state and samples
+FLOAT32_CHILD = textwrap.dedent("""
+    import json, sys
+    import numpy as np
+    import jax
+    assert not jax.config.jax_enable_x64
+    sys.path.insert(0, sys.argv[3])
+    import noh_reference as nr
+    from sims import ClothState
+    spec = json.loads(sys.argv[2])
+    data = np.load(sys.argv[1])
+    out = {}
+    for label, frames in spec["cases"].items():
+        scene = nr.case_scene(label, spec["width"], spec["height"], **nr.small_scene())
+        for f in frames:
+            x, xp, t = (data[f"{label}_{f}_{k}"] for k in ("x", "x_prev", "time"))
+            state = ClothState(*(jax.numpy.asarray(a, jax.numpy.float32) for a in (x, xp, t)))
+            image, new_state, _ = nr.production_frame(scene, f, state, shadow_resolution=spec["shadow_resolution"])
+            fr = nr.reference_inputs(scene, f, new_state)
+            out[f"{label}_{f}_image"] = np.asarray(image, np.float32)
+            for k, v in vars(fr).items():
+                out[f"{label}_{f}_{k}"] = v
+    np.savez(sys.argv[4], **out)
+""")
+
+
+def small_scene() -> dict:
+    """The scene's detail for the comparison (what it proves does not need more): level-0 BTFs of
+    8 texels, 32 x 16 flame textures; the robe as rendered."""
+    return dict(btfs=default_btfs(size=8, pyramid="none"), flame_size=(32, 16))
+
+
+def float32_frames(spec: dict, states: dict, workdir: Path) -> dict:
+    """Run `FLOAT32_CHILD` (`spec`: width, height, shadow_resolution, cases {label: frames};
+    `states`: {label_frame_x|x_prev|time: array}); returns {(label, frame): (image, Frame)}."""
+    np.savez(workdir / "states.npz", **states)
+    env = dict(os.environ)
+    env.pop("JAX_ENABLE_X64", None)
+    proc = subprocess.run([sys.executable, "-c", FLOAT32_CHILD, str(workdir / "states.npz"), json.dumps(spec),
+                           str(Path(__file__).resolve().parent), str(workdir / "float32.npz")],
+                          capture_output=True, text=True, env=env, timeout=1800)
+    if proc.returncode != 0:
+        raise RuntimeError(proc.stderr[-4000:])
+    data = np.load(workdir / "float32.npz")
+    out = {}
+    for label, frames in spec["cases"].items():
+        for f in frames:
+            fields = {k: np.asarray(data[f"{label}_{f}_{k}"]) for k in Frame.__dataclass_fields__}
+            fields = {k: (v.astype(np.float64) if v.dtype.kind == "f" else v) for k, v in fields.items()}
+            out[(label, f)] = (np.asarray(data[f"{label}_{f}_image"], np.float64), Frame(**fields))
+    return out
+
+
+def relative_rms(image: np.ndarray, reference: np.ndarray, where: np.ndarray) -> float:
+    """sqrt(sum |image - reference|^2 / sum |reference|^2) over the pixels `where` (RGB)."""
+    d = (image - reference)[where]
+    return float(np.sqrt(np.sum(d * d) / np.sum(reference[where] ** 2)))

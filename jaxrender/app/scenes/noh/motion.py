@@ -51,9 +51,6 @@ from .shading import (
 from .stage import FLAME_SIZE
 
 STAGE_F0 = 0.04          # reflectance at normal incidence of the waxed hinoki (a coat of index ~1.5)
-NORMAL_OFFSET = 0.005    # m: the performer's shadow lookups, along the normal toward the fire
-PERFORMER_BIAS = 0.003   # m: depth bias there (below the 12 mm between the robe and the body)
-STAGE_BIAS = 0.02        # m: depth bias at the stage's points
 
 
 class FrameCounts(eqx.Module):
@@ -176,25 +173,18 @@ def _flames(pixels: FlamePixels, emission: Float[Array, "Q Hf Wf 3"], t_stop: Fl
     return out
 
 
-def fire_shadows(rig: NohRig, maps: ShadowMap, points: Float[Array, "N 3"], normals: Float[Array, "N 3"]
+def fire_shadows(rig: NohRig, maps: ShadowMap, points: Float[Array, "N 3"]
                  ) -> tuple[Float[Array, "N Q"], Float[Array, "Q P"]]:
     """PCSS per fire (one traced pass, vmapped over fires): at the performer's `points`, and at the
     half-resolution stage points inside that fire's frustum, which are read back bilinearly at
-    every stage pixel (1 outside the frustum; docs/noh.md). The performer's points are looked up
-    `NORMAL_OFFSET` along their normal toward the fire with a depth bias of `PERFORMER_BIAS`:
-    the robe lies 12 mm outside the body and its sleeves over the robe, and a larger bias would
-    let the fire's light through the layer above."""
+    every stage pixel (1 outside the frustum; docs/noh.md)."""
     grid = rig.shadow_grid
     hh, hw = grid.shape
     n = points.shape[0]
-    bias = jnp.concatenate([jnp.full((n,), PERFORMER_BIAS, points.dtype),
-                            jnp.full(grid.points.shape[1:2], STAGE_BIAS, points.dtype)])
 
     def one(sm, stage_points, cell):
-        toward = jnp.sign(jnp.sum(normals * (sm.position[None] - points), -1, keepdims=True))
-        lifted = points + NORMAL_OFFSET * toward * normals
-        vis = pcss(sm, jnp.concatenate([lifted, stage_points]), light_size=float(FLAME_SIZE[0]), near=rig.near,
-                   bias=bias)
+        vis = pcss(sm, jnp.concatenate([points, stage_points]), light_size=float(FLAME_SIZE[0]), near=rig.near,
+                   bias=0.02)
         image = jnp.ones((hh * hw,), vis.dtype).at[cell].set(vis[n:], mode="drop").reshape(hh, hw, 1)
         return vis[:n], bilinear(image, rig.stage.shadow_uv)[:, 0]
 
@@ -242,8 +232,7 @@ def noh_frame(scene: NohScene, rig: NohRig, state: ClothState, emission: Float[A
     r_distance = jnp.where(_placed(reflects, mb, ph, False), _placed(gbr.distance, mb, ph, jnp.inf), rig.mirror.stop)
 
     n_g = points.position.shape[0]
-    vis, shade = fire_shadows(rig, maps, jnp.concatenate([points.position, mirrored.position]),
-                              jnp.concatenate([points.frame[:, 2], mirrored.frame[:, 2]]))
+    vis, shade = fire_shadows(rig, maps, jnp.concatenate([points.position, mirrored.position]))
 
     # light: the environment's samples, the frame's flames
     fires = eqx.tree_at(lambda f: f.emission, scene.fires, emission)
