@@ -8,7 +8,7 @@ import json
 import jax
 import numpy as np
 import pytest
-from capture_helpers import write_capture
+from capture_helpers import write_capture, write_foreign_exr
 
 from jaxrender.app.cli.programs import fitting_main
 from jaxrender.io import read_btf, write_exr, write_png
@@ -41,7 +41,7 @@ def _truncate(path):
 def _nan(path):
     image = np.full(SIZE + (3,), 0.5, np.float32)
     image[0, 0] = np.nan
-    write_exr(path, image)
+    write_foreign_exr(path, image)
 
 
 CASES = {
