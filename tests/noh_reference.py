@@ -256,8 +256,8 @@ class Triangles:
     def _run(self, kernel, o, d, tmax, rays, clusters):
         m = _bucket(len(rays))
         return [np.asarray(a)[:len(rays)] for a in jax.tree_util.tree_leaves(kernel(
-            jnp.asarray(_padded(o[rays], m)), jnp.asarray(_padded(d[rays], m, 1.0)), jnp.asarray(_padded(tmax[rays], m)),
-            jnp.asarray(_padded(clusters, m)), self.packed))]
+            jnp.asarray(_padded(o[rays], m)), jnp.asarray(_padded(d[rays], m, 1.0)),
+            jnp.asarray(_padded(tmax[rays], m)), jnp.asarray(_padded(clusters, m)), self.packed))]
 
     def nearest(self, o: np.ndarray, d: np.ndarray):
         """(t, triangle, b1, b2) of the nearest triangle along each ray (inf, -1 where none)."""
@@ -412,7 +412,8 @@ class _World:
         self.mats, self.env = _f64(scene.mats), _f64(scene.env)
         self.fr = fr
         c, u, v = self.center, self.u, self.v
-        quads = np.concatenate([np.stack([c - u - v, c + u - v, c + u + v], 1), np.stack([c - u - v, c + u + v, c - u + v], 1)])
+        quads = np.concatenate([np.stack([c - u - v, c + u - v, c + u + v], 1),
+                                np.stack([c - u - v, c + u + v, c - u + v], 1)])
         self.n_stage = len(quads)
         performer = fr.vertices[fr.triangles]
         basket = (self.material == MATERIALS.index("iron")) & (np.abs(c[:, 1] - (FLAME_BASE - BASKET[1] / 2)) < 1e-9)
@@ -451,7 +452,8 @@ class _World:
             emission = np.einsum("rh,cw,hwx->rcx", row_share, col_share, em[f]).reshape(-1, 3)
             t = 0.5 * (edge[1:] + edge[:-1])
             tt, ss = (g.reshape(-1) for g in np.meshgrid(t, s, indexing="ij"))
-            at = lambda ss, tt: self.f_center[f] + (2 * ss - 1)[:, None] * self.f_u[f] + (1 - 2 * tt)[:, None] * self.f_v[f]  # noqa: E731
+            at = lambda ss, tt: (self.f_center[f] + (2 * ss - 1)[:, None] * self.f_u[f]  # noqa: E731
+                                 + (1 - 2 * tt)[:, None] * self.f_v[f])
             full = 4 * np.linalg.norm(np.cross(self.f_u[f], self.f_v[f]))
             b_edge = edge[::FIRE_ROWS // br]
             bt, bs = (g.reshape(-1) for g in np.meshgrid(0.5 * (b_edge[1:] + b_edge[:-1]), (np.arange(bc) + 0.5) / bc,
@@ -525,8 +527,9 @@ class _World:
 
     def performer_radiance(self, o, tri, b1, b2, neighbours, blend):
         """Radiance toward the origins `o` of the performer points hit there, the luminance each fire
-        would give them unshadowed and the fires' states (`_states`); `neighbours`: the rays (origins, directions) through the pixel centres right
-        of and below each one's pixel (for the uv derivatives)."""
+        would give them unshadowed and the fires' states (`_states`); `neighbours`: the rays
+        (origins, directions) through the pixel centres right of and below each one's pixel (for
+        the uv derivatives)."""
         fr = self.fr
         vid = fr.triangles[tri]
         p0, p1, p2 = (fr.vertices[vid[:, k]] for k in range(3))
@@ -683,8 +686,9 @@ def render_reference(scene, frame: Frame, *, roughness: float = STAGE_ROUGHNESS)
         mirrored_perf[idx] = r_perf.reshape(-1, g).any(axis=1)
         mirrored_flames[idx] = r_flames.reshape(-1, g).any(axis=1)
     grid = lambda a: a.reshape((h, w) + a.shape[1:])  # noqa: E731
-    return Reference(grid(image), grid(lum), grid(state), grid(surface), grid(m_lum), grid(m_state), grid(m_surface),
-                     grid(m_total), grid(perf), grid(mirrored_perf), grid(flames), grid(mirrored_flames), grid(polished))
+    return Reference(grid(image), grid(lum), grid(state), grid(surface), grid(m_lum), grid(m_state),
+                     grid(m_surface), grid(m_total), grid(perf), grid(mirrored_perf), grid(flames),
+                     grid(mirrored_flames), grid(polished))
 
 
 # ------------------------------------------------------------------------------ the cases compared

@@ -21,8 +21,14 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import enable_x64
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+
+from jaxrender.app.scenes.noh import exported_meshes, stage_motion
+from jaxrender.app.scenes.noh.performer import performer_mesh, performer_rig
+from sims import ClothState, costume_frames
+from sims.costume import body_scale, dress_performer
 
 WELD = 1e-7        # m: vertices closer than this are one (seams and poles of the body's parts)
 
@@ -173,9 +179,14 @@ class BodyShape:
 
 
 def contact(robe_vertices: np.ndarray, robe_triangles: np.ndarray, body: BodyShape) -> Contact:
-    """How the robe (its triangles) meets the body of the same frame (module docstring). Each
-    body part is tested only against the robe's edges, triangles and points that reach into its
-    bounding sphere (the rest cannot touch it)."""
+    """How the robe (its triangles) meets the body of the same frame (module docstring), in
+    float64 whatever JAX's default. Each body part is tested only against the robe's edges,
+    triangles and points that reach into its bounding sphere (the rest cannot touch it)."""
+    with enable_x64():
+        return _contact(robe_vertices, robe_triangles, body)
+
+
+def _contact(robe_vertices: np.ndarray, robe_triangles: np.ndarray, body: BodyShape) -> Contact:
     rv = np.asarray(robe_vertices, np.float64)
     rt = np.asarray(robe_triangles)
     n = len(rv)
@@ -216,3 +227,22 @@ def contact(robe_vertices: np.ndarray, robe_triangles: np.ndarray, body: BodySha
     through = tri_hit | np.isin(tri_edges[..., 0] * n + tri_edges[..., 1], hit_keys).any(axis=1)
     through |= vertex_in[rt].any(axis=1)
     return Contact(int(through.sum()), depth, int(edge_hit.sum()), int(vertex_in.sum()))
+
+
+def dance_performer(bvh, *, duration: float):
+    """The performer of `jaxrender noh` dancing `bvh` (placed on the stage, `duration` s long) in
+    its robe (dressed and settled), as `noh_scene` makes it."""
+    placed, joints = stage_motion(bvh, duration=duration)
+    return performer_rig(dress_performer(placed, joints), placed, joints, body_scale(placed, joints))
+
+
+def performer_frames(performer, frames: int, frame_dt: float = 0.1):
+    """Each frame's (body, robe) `ExportedMesh` as `jaxrender noh --meshes` writes them (the robe
+    simulated from its settled state, `frame_dt` s a frame, in the default precision)."""
+    xs, _ = jax.jit(lambda c, m: costume_frames(c, m, frames=frames, frame_dt=frame_dt))(performer.costume,
+                                                                                          performer.motion)
+    step = round(frame_dt / performer.costume.dt) * performer.costume.dt
+    mesh_of = jax.jit(performer_mesh)
+    for f in range(frames):
+        state = ClothState(xs[f], xs[f], jnp.asarray((f + 1) * step, xs.dtype))
+        yield exported_meshes(mesh_of(performer, state), performer)

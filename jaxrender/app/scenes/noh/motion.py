@@ -320,12 +320,13 @@ def grown(rig: NohRig, counts: FrameCounts) -> NohRig | None:
 
 def render_sequence(scene: NohScene, *, frames: int, key: PRNGKeyArray, k_env: int = 20, k_fire: int = 20,
                     frame_dt: float = 0.1, shadow_resolution: int = 512, progress=None, time_repeats: int = 0,
-                    info: dict | None = None) -> tuple[list[np.ndarray], NohRig]:
+                    info: dict | None = None, states: list | None = None) -> tuple[list[np.ndarray], NohRig]:
     """`frames` frames `frame_dt` s apart (the flames cycle through their frames), each
     continuing the robe from the previous one; then `time_repeats` more frames (continuing the
     dance, discarded) timed into `info["timed_s"]`. A frame that needs larger buffers than the
     rig has is rendered again with grown ones (one more compile). `info` also gets `prepare_s`,
-    `compile_s` (the first frame), `frame_s`, `recompiles` and `performer_mask` (frame 0)."""
+    `compile_s` (the first frame), `frame_s`, `recompiles` and `performer_mask` (frame 0); `states`
+    (a list) each frame's robe state as rendered (`performer.performer_mesh` of it is the frame's mesh)."""
     k_env_key, k_frames = jax.random.split(key)
     t0 = time.perf_counter()
     rig = jax.block_until_ready(prepare_rig(scene, key=k_env_key, k_env=k_env, shadow_resolution=shadow_resolution,
@@ -350,6 +351,8 @@ def render_sequence(scene: NohScene, *, frames: int, key: PRNGKeyArray, k_env: i
             mask0 = np.asarray(counts.performer_mask)
         if i < frames:
             out.append(np.asarray(image, np.float32))
+            if states is not None:
+                states.append(new_state)
             if progress is not None:
                 progress(1)
     if info is not None:
