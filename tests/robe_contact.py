@@ -21,7 +21,6 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.experimental import enable_x64
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -182,7 +181,7 @@ def contact(robe_vertices: np.ndarray, robe_triangles: np.ndarray, body: BodySha
     """How the robe (its triangles) meets the body of the same frame (module docstring), in
     float64 whatever JAX's default. Each body part is tested only against the robe's edges,
     triangles and points that reach into its bounding sphere (the rest cannot touch it)."""
-    with enable_x64():
+    with jax.enable_x64(True):
         return _contact(robe_vertices, robe_triangles, body)
 
 
