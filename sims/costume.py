@@ -163,6 +163,7 @@ class Costume(eqx.Module):
     triangles: Int[Array, "T 3"]         # into the rendered vertices
     sim_triangles: Int[Array, "T 3"]     # the same triangles, into the simulated vertices
     edges: Int[Array, "E 2"]             # the triangles' edges (simulated vertices), kept outside the volumes
+    inverse_mass: Float[Array, " N"]     # 1 for a free vertex, 0 for a fixed one (the edges' pushes)
     dt: float = eqx.field(static=True)
     mass: float = eqx.field(static=True)
     damping: float = eqx.field(static=True)          # air drag, 1/s
@@ -389,11 +390,13 @@ def dress_performer(motion: SkeletonMotion, joints: dict[str, int], *, rows: int
     sim_tris = render_index[tris]
     edges = np.unique(np.sort(np.concatenate([sim_tris[:, [0, 1]], sim_tris[:, [1, 2]], sim_tris[:, [2, 0]]]), axis=1),
                       axis=0)
+    inverse_mass = np.ones(n)
+    inverse_mass[fixed] = 0.0
     x0 = jnp.asarray(pts, dtype)
     costume = Costume(ClothState(x0, x0, jnp.zeros((), dtype)), springs, jnp.asarray(fixed, jnp.int32),
                       jnp.asarray(fixed_joint, jnp.int32), jnp.asarray(local, dtype), volumes,
                       jnp.asarray(render_index, jnp.int32), jnp.asarray(uv, dtype), jnp.asarray(tris, jnp.int32),
-                      jnp.asarray(sim_tris, jnp.int32), jnp.asarray(edges, jnp.int32),
+                      jnp.asarray(sim_tris, jnp.int32), jnp.asarray(edges, jnp.int32), jnp.asarray(inverse_mass, dtype),
                       dt, mass / n, damping, spring_damping, margin, 0.004)
     if settle_steps:
         still = SkeletonMotion(motion.positions[:1], motion.rotations[:1], motion.frame_time)
@@ -429,14 +432,14 @@ def _push_out(x: Float[Array, "N 3"], a: Float[Array, "B 3"], b: Float[Array, "B
     return x
 
 
-def _push_edges_out(x: Float[Array, "N 3"], edges: Int[Array, "E 2"], a: Float[Array, "B 3"], b: Float[Array, "B 3"],
-                    radius: Float[Array, " B"]) -> Float[Array, "N 3"]:
+def _push_edges_out(x: Float[Array, "N 3"], edges: Int[Array, "E 2"], inverse_mass: Float[Array, " N"],
+                    a: Float[Array, "B 3"], b: Float[Array, "B 3"], radius: Float[Array, " B"]) -> Float[Array, "N 3"]:
     """Every edge moved out of the capsules it is inside: the closest points of the edge and
     the capsule's axis (segment to segment), the edge's point carried to radius from the axis by
-    moving its two ends in proportion to their share of it, each vertex by the mean of the moves
-    its edges ask. Vertices outside the capsules can still leave an edge between them crossing a
-    thin one (an arm through a robe's opening): this keeps the triangles, not only their corners,
-    out of the body."""
+    moving its two ends in proportion to their share of it (and to their inverse mass: a fixed
+    end does not move), each vertex by the mean of the moves its edges ask. Vertices outside the
+    capsules can still leave an edge between them crossing a thin one (an arm through a robe's
+    opening): this keeps the triangles, not only their corners, out of the body."""
     p, q = x[edges[:, 0]], x[edges[:, 1]]                      # E 3
     d1 = [(q[:, k] - p[:, k])[:, None] for k in range(3)]      # by components: E B
     d2 = [(b[:, k] - a[:, k])[None] for k in range(3)]
@@ -454,14 +457,15 @@ def _push_edges_out(x: Float[Array, "N 3"], edges: Int[Array, "E 2"], a: Float[A
     dist = jnp.sqrt(jnp.maximum(dot(gap, gap), 1e-20))
     depth = jnp.maximum(radius[None] - dist, 0.0)              # > 0: the edge is inside
     push = [depth * g / dist for g in gap]                     # the edge point's move out of each capsule
-    w0, w1 = 1 - s, s
-    scale = 1.0 / ((1 - s) * w0 + s * w1)                    # the edge's point moves by the depth
+    w0 = (1 - s) * inverse_mass[edges[:, 0]][:, None]
+    w1 = s * inverse_mass[edges[:, 1]][:, None]
+    scale = 1.0 / jnp.maximum((1 - s) * w0 + s * w1, 0.5)   # a point near a fixed end: at most 2 x depth
     move0 = jnp.stack([jnp.sum(w0 * scale * m, axis=1) for m in push], -1)
     move1 = jnp.stack([jnp.sum(w1 * scale * m, axis=1) for m in push], -1)
     inside = jnp.sum(depth, axis=1) > 0
     move = jnp.concatenate([move0, move1])
     ends = jnp.concatenate([edges[:, 0], edges[:, 1]])
-    active = jnp.concatenate([inside, inside])
+    active = jnp.concatenate([inside & (inverse_mass[edges[:, 0]] > 0), inside & (inverse_mass[edges[:, 1]] > 0)])
     n = x.shape[0]
     total = jax.ops.segment_sum(move, ends, num_segments=n)
     count = jax.ops.segment_sum(active.astype(x.dtype), ends, num_segments=n)
@@ -472,9 +476,9 @@ def advance_costume(costume: Costume, state: ClothState, motion: SkeletonMotion,
                     gravity: float = 9.81, passes: int = 2) -> ClothState:
     """Continue the robe's Verlet simulation from `state` for `steps` steps of `costume.dt`
     following `motion`: springs with dampers along them, air drag, gravity; after each step every
-    vertex is pushed out of the body's volumes (`passes` sweeps, to radius + margin), every edge
-    too (`_push_edges_out`), and above the floor; the fixed vertices are set on the skeleton
-    before (a volume that swings into one pushes it aside). Jittable (`steps` static)."""
+    free vertex is pushed out of the body's volumes (`passes` sweeps, to radius + margin), every
+    edge too (`_push_edges_out`), and above the floor, and the fixed vertices are set on the
+    skeleton, pushed out of the arms' volumes. Jittable (`steps` static)."""
     x0 = state.x
     dtype = x0.dtype
     dt = costume.dt
@@ -483,6 +487,7 @@ def advance_costume(costume: Costume, state: ClothState, motion: SkeletonMotion,
     keep = 1 - costume.damping * dt
     n = x0.shape[0]
     body = costume.body
+    arms = np.asarray([i for i, name in enumerate(body.names) if name.startswith(("upper_arm", "lower_arm", "hand"))])
 
     def step(carry, k):
         x, xp = carry
@@ -497,13 +502,14 @@ def advance_costume(costume: Costume, state: ClothState, motion: SkeletonMotion,
         xn = x + keep * (x - xp) + (force / costume.mass + g) * dt * dt
         pos, rot = motion.at(t)
         a, b = body.ends(pos, rot)
-        # the fixed vertices set on the skeleton first: an arm that swings into the collar or the
-        # chest ring pushes them aside like the others (pinned there, they would stay inside it)
-        xn = xn.at[costume.fixed_index].set(fixed_positions(costume, pos, rot))
         for _ in range(passes):
             xn = _push_out(xn, a, b, body.radius + costume.margin)
-        xn = _push_edges_out(xn, costume.edges, a, b, body.radius + costume.margin)
+        xn = _push_edges_out(xn, costume.edges, costume.inverse_mass, a, b, body.radius + costume.margin)
         xn = xn.at[:, 1].set(jnp.maximum(xn[:, 1], costume.floor))
+        # the fixed vertices on the skeleton, pushed aside by an arm that swings into the collar or
+        # the chest ring (pinned, they would stay inside it)
+        fixed = _push_out(fixed_positions(costume, pos, rot), a[arms], b[arms], body.radius[arms] + costume.margin)
+        xn = xn.at[costume.fixed_index].set(fixed)
         return (xn, x), None
 
     (x, xp), _ = jax.lax.scan(step, (state.x, state.x_prev), jnp.arange(steps))

@@ -1,4 +1,4 @@
-"""The robe on a moving skeleton (sims.costume): its vertices stay outside the body's volumes,
+"""The robe on a moving skeleton (sims.costume): its free vertices stay outside the body's volumes,
 its fixed vertices sit exactly on the skeleton unless an arm pushes them aside, nothing goes NaN,
 and each frame continues from the last. Checked in numpy float64 from the motion's frames, on the
 built-in dance and on a vigorous stretch of a captured one, at a small robe."""
@@ -17,7 +17,7 @@ from sims.costume import advance_costume, dress_performer
 
 MOCAP = Path(os.environ.get("JAXRENDER_MOCAP", Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"))
 
-PENETRATION_TOL = 1e-3   # m: the bound on any vertex inside a body volume (pushed to r + 12 mm)
+PENETRATION_TOL = 1e-3   # m: the bound on any free vertex inside a body volume (pushed to r + 12 mm)
 FIXED_TOL = 1e-9         # m: the same rotation and translation in float64, another order of operations
 ON_SKELETON = 0.8        # the share of the fixed vertices exactly on the skeleton in every frame (measured: print)
 ASIDE_TOL = 0.05         # m: the farthest an arm pushes a fixed vertex aside (the arm's radius + 12 mm at most)
@@ -75,14 +75,14 @@ def test_robe_stays_outside_the_body_and_its_fixed_vertices_on_the_skeleton(dres
         at = (f + 1) * (round(_FRAME_DT / costume.dt) * costume.dt) / motion.frame_time
         k, w = int(np.floor(at)), at - np.floor(at)
         p, r = ((1 - w) * a[k] + w * a[k + 1] for a in frames)
-        deepest = max(deepest, float(_depth_inside(xs[f], *_numpy_capsules(costume, p, r)).max()))
+        deepest = max(deepest, float(_depth_inside(xs[f, free], *_numpy_capsules(costume, p, r)).max()))
         joint = np.asarray(costume.fixed_joint)
         expected = p[joint] + np.einsum("pij,pj->pi", r[joint], np.asarray(costume.fixed_local, np.float64))
         off = np.linalg.norm(xs[f, fixed] - expected, axis=-1)
         on_skeleton = min(on_skeleton, float(np.mean(off <= FIXED_TOL)))
         aside = max(aside, float(off.max()))
         moved = max(moved, float(np.abs(xs[f] - np.asarray(costume.state.x)).max()))
-    print(source, "deepest vertex inside a volume:", deepest, "m; largest move", moved, "; fixed vertices on the "
+    print(source, "deepest free vertex inside a volume:", deepest, "m; largest move", moved, "; fixed vertices on the "
           "skeleton (least share in a frame):", on_skeleton, "farthest pushed aside:", aside, "m")
     assert deepest <= PENETRATION_TOL
     assert on_skeleton >= ON_SKELETON and aside <= ASIDE_TOL
