@@ -37,11 +37,12 @@ from noh_reference import (  # noqa: E402
     small_scene,
     state_before,
 )
-from test_noh_bruteforce import GLOW, MUST_MATCH_RMS, RADIUS, SHADOW_RESOLUTION, SHARE, SIZE  # noqa: E402
+from test_noh_bruteforce import GLOW, RADIUS, SHADOW_RESOLUTION, SHARE, SIZE  # noqa: E402
 
 from jaxrender.io import linear_to_srgb, write_png  # noqa: E402
 
 FIGURES = Path(__file__).resolve().parent / "figures"
+TARGET = 0.02   # relative RMS where the frame must match, float32 and float64
 
 
 def difference_map(image: np.ndarray, ref, differ: np.ndarray) -> np.ndarray:
@@ -88,11 +89,11 @@ def main() -> None:
         may = [v["may_differ_rms"] for k, v in figures.items() if k.endswith(dtype)]
         rows.append(dict(
             issue="Noh reference", target=f"composed frame vs brute force, relative RMS outside the penumbrae <= "
-                                          f"{MUST_MATCH_RMS:.0%} ({dtype})",
+                                          f"{TARGET:.0%} ({dtype})",
             measured=f"worst {worst:.4f} over both motions x 2 frames at {SIZE[0]}x{SIZE[1]}; where they may differ "
                      f"{min(may):.3f}-{max(may):.3f}; {wall:.0f} s wall, {cpu:.0f} s CPU, load "
                      f"{os.getloadavg()[0]:.1f}, {cpu_description()}",
-            status="met" if worst <= MUST_MATCH_RMS else "missed",
+            status="met" if worst <= TARGET else "missed",
             figures={k: v for k, v in figures.items() if k.endswith(dtype)}))
     write_results("noh_reference", rows)
 
