@@ -202,7 +202,7 @@ def main() -> None:
     print(f"\n{total} documents in {seconds:.0f} s: " + ", ".join(f"{k} {v}" for k, v in tally.counts.items()))
     print(f"{len(tally.findings)} findings" + "".join(f"\n  {f}" for f in tally.findings))
     write_results("format_fuzz", [dict(
-        issue="formats", target="generated documents: valid ones give exit 0 and finite output, broken ones "
+        area="tools", target="generated documents: valid ones give exit 0 and finite output, broken ones "
                                 "one line per problem and exit 2 with nothing written",
         measured=f"{total} documents (seed {args.seed}), {len(tally.findings)} findings",
         status="met" if not tally.findings else "missed",

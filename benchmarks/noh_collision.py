@@ -68,7 +68,7 @@ def main() -> None:
     for r in runs:
         status = "met" if r["through_total"] == 0 else "missed"
         rows.append(dict(
-            issue="Noh robe", target=f"0 robe triangles through the body as rendered, {r['label']} dance",
+            area="noh", target=f"0 robe triangles through the body as rendered, {r['label']} dance",
             measured=f"{r['through_total']} triangles through over {r['frames']} frames (most in a frame "
                      f"{r['through_max']}, deepest {1000 * r['deepest_m']:.1f} mm); robe's largest move per frame "
                      f"{100 * r['largest_move_m']:.1f} cm; check {r['check_cpu_s']:.2f} s CPU per frame, load "

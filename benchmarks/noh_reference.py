@@ -88,7 +88,7 @@ def main() -> None:
         worst = max(v["must_match_rms"] for k, v in figures.items() if k.endswith(dtype))
         may = [v["may_differ_rms"] for k, v in figures.items() if k.endswith(dtype)]
         rows.append(dict(
-            issue="Noh reference", target=f"composed frame vs brute force, relative RMS outside the penumbrae <= "
+            area="noh", target=f"composed frame vs brute force, relative RMS outside the penumbrae <= "
                                           f"{TARGET:.0%} ({dtype})",
             measured=f"worst {worst:.4f} over both motions x 2 frames at {SIZE[0]}x{SIZE[1]}; where they may differ "
                      f"{min(may):.3f}-{max(may):.3f}; {wall:.0f} s wall, {cpu:.0f} s CPU, load "

@@ -1,4 +1,4 @@
-"""Fits that generalize on real data (issue 23): DiLiGenT objects, normals, held-out lights, speed.
+"""Fits that generalize on real data: DiLiGenT objects, normals, held-out lights, speed.
 
     python benchmarks/real_captures.py                    # every object of the DiLiGenT folder
     python benchmarks/real_captures.py --objects ball,cat
@@ -187,16 +187,16 @@ def summary_rows(records: list[dict]) -> list[dict]:
     goal = (f"; goal PS-FCN 15.84 on harvest: {'met' if harvest['normals_deg'] <= 15.84 else 'missed'}"
             if harvest else "")
     rows = [
-        dict(issue="23 real captures", target="normals <= ST14 on every DiLiGenT object",
+        dict(area="fitting", target="normals <= ST14 on every DiLiGenT object",
              measured="; ".join(normals) + goal, status="met" if ok_n else "missed",
              figures={r["object"]: r["normals_deg"] for r in records}),
-        dict(issue="23 real captures", target="held-out lights below the Lambertian fit (goal 0.8x on average)",
+        dict(area="fitting", target="held-out lights below the Lambertian fit (goal 0.8x on average)",
              measured="; ".join(heldout) + f"; mean {mean_ratio:.2f}x",
              status=("met" if ok_h else "missed") + (", goal met" if mean_ratio <= 0.8 else ", goal missed"),
              figures={f"{r['object']}_{k}": r[k] for r in records for k in ("heldout", "heldout_lambertian")}),
     ]
     if speed:
-        rows.append(dict(issue="23 real captures",
+        rows.append(dict(area="fitting",
                          target=f"a whole object (mask, 96 lights) <= {SPEED_TARGET_S:.0f} s wall on 2 cores, "
                                 "compile incl. (the `fitting fit` command)",
                          measured="; ".join(speed), status="met" if ok_s else "missed",

@@ -7,6 +7,9 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+import OpenEXR
+
 
 def write_capture(root: Path, image: Callable[[str], str], *, size: tuple[int, int], ext: str, lights: int,
                   exposures_s: list[float], angle_step: tuple[float, float], response: str = "linear") -> Path:
@@ -26,9 +29,6 @@ def write_capture(root: Path, image: Callable[[str], str], *, size: tuple[int, i
 def write_foreign_exr(path: Path, image) -> Path:
     """An RGB EXR as another program may write it, NaN and infinities included (the toolkit's own
     `write_exr` refuses values that are not finite): the readers must refuse it."""
-    import numpy as np
-    import OpenEXR
-
     image = np.asarray(image, np.float32)
     channels = {c: np.ascontiguousarray(image[..., i]) for i, c in enumerate("RGB")}
     with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels) as exr:

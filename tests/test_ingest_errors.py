@@ -74,7 +74,7 @@ def test_malformed_capture_exits_2_and_leaves_nothing(tmp_path, capsys, command,
     err = capsys.readouterr().err
     assert "Traceback" not in err
     lines = err.strip().split("\n")
-    lines[0] = lines[0].split(": error: ", 1)[1]
+    lines = [line.split(": error: ", 1)[1] for line in lines]  # each problem line names the command
     assert len(lines) == len(expected), lines
     for line, (name, fragment) in zip(lines, expected, strict=True):
         assert line.startswith(f"{cap / name}: ") and fragment in line, line

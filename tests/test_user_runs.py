@@ -95,7 +95,7 @@ def exact_total(field) -> float:
 @pytest.mark.parametrize("command,low,high,extra", [("ripples", 1.0, 1.5, ["--L0", "9"]),
                                                     ("dunes", 2.0, 4.0, ["--wind-deg", "30"])])
 def test_sims_conserve_sand_over_10000_steps_float32(tmp_path, command, low, high, extra):
-    """Issue 15: `sims ripples` / `sims dunes` (float32, chunks of 100 steps with a progress bar) keep
+    """`sims ripples` / `sims dunes` (float32, chunks of 100 steps with a progress bar) keep
     the total of a 32 x 48 field to within 1e-6 over 10,000 steps; the features did grow."""
     init = np.random.default_rng(7).uniform(low, high, (32, 48)).astype(np.float32)
     np.save(tmp_path / "init.npy", init)
@@ -315,6 +315,8 @@ def test_gallery_quick_end_to_end(tmp_path):
     proc = run("jaxrender", "gallery", "--quick", "--out", out)
     assert "FAILED" not in proc.stdout
     assert_kept(kept)
+    # not a terminal: no progress bars, one line per entry as it is written
+    assert "\r" not in proc.stderr and "it/s" not in proc.stderr and "section/s" not in proc.stderr, proc.stderr
     result = json.loads((out / "gallery.json").read_text())
     assert result["quick"] is True
     assert set(result["sections"]) == set(SECTIONS)
@@ -324,6 +326,7 @@ def test_gallery_quick_end_to_end(tmp_path):
         assert section["entries"], f"{name}: no entries"
         for entry in section["entries"]:
             assert entry["title"] and entry["images"], (name, entry)
+            assert f"[gallery] {name}: wrote {', '.join(entry['images'])} (" in proc.stdout, proc.stdout
             for rel in entry["images"]:
                 assert rel.startswith(f"{name}/")
                 assert rel in page, f"index.html does not show {rel}"
