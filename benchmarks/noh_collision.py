@@ -7,7 +7,7 @@ The robe is simulated as `jaxrender noh` simulates it (float32 unless JAX_ENABLE
 frame: the whole built-in dance (6 s, 60 frames) and the whole captured dance
 (dance-short_normal_001.bvh, 63 s, 633 frames). Rows "Noh robe" to benchmarks/results/noh_collision.json.
 
-Run: `python benchmarks/noh_collision.py` (`--quick`: 2 s of each, nothing written).
+Run: `python benchmarks/noh_collision.py` (`--quick`: 0.5 s of each, nothing written).
 """
 
 from __future__ import annotations
@@ -58,12 +58,12 @@ def measure(label: str, bvh, duration: float) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="2 s of each dance, nothing written")
+    parser.add_argument("--quick", action="store_true", help="0.5 s of each dance, nothing written")
     args = parser.parse_args()
     captured = read_bvh(MOCAP / CAPTURED)
     whole = captured.motion.shape[0] * captured.frame_time
-    runs = [measure("built-in", noh_dance(), 2.0 if args.quick else 6.0),
-            measure("captured", captured, 2.0 if args.quick else FRAME_DT * int(whole / FRAME_DT))]
+    runs = [measure("built-in", noh_dance(), 0.5 if args.quick else 6.0),
+            measure("captured", captured, 0.5 if args.quick else FRAME_DT * int(whole / FRAME_DT))]
     rows = []
     for r in runs:
         status = "met" if r["through_total"] == 0 else "missed"

@@ -5,11 +5,13 @@ shadow edges, reflected edges), and a difference map per case: benchmarks/figure
 (left to right: the production frame, the reference, |difference| / the reference's mean over the
 image x 4, the pixels that may differ in red). Rows "Noh reference" to benchmarks/results/noh_reference.json.
 
-Run: `python benchmarks/noh_reference.py` (about 5 min CPU).
+Run: `python benchmarks/noh_reference.py` (about 5 min CPU); `--quick`: the built-in dance's first
+frame in float64 at 48 x 32, no figures (a smoke run).
 """
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 import tempfile
@@ -56,20 +58,24 @@ def difference_map(image: np.ndarray, ref, differ: np.ndarray) -> np.ndarray:
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="one frame, float64, 48 x 32 (a smoke run)")
+    args = parser.parse_args()
+    cases, size = ({"built-in": (FRAMES["built-in"][0],)}, (48, 32)) if args.quick else (FRAMES, SIZE)
     t0, c0 = time.perf_counter(), time.process_time()
     out, states, scenes = {}, {}, {}
     with jax.numpy_rank_promotion("allow"):
-        for label, frames in FRAMES.items():
-            scene = scenes[label] = case_scene(label, *SIZE, **small_scene())
+        for label, frames in cases.items():
+            scene = scenes[label] = case_scene(label, *size, **small_scene())
             for frame in frames:
                 state = state_before(scene, frame)
                 states.update({f"{label}_{frame}_{k}": np.asarray(getattr(state, k)) for k in ("x", "x_prev", "time")})
                 image, new_state, _ = production_frame(scene, frame, state, shadow_resolution=SHADOW_RESOLUTION)
                 ref = render_reference(scene, reference_inputs(scene, frame, new_state))
                 out[(label, frame, "float64")] = image, ref
-        spec = dict(width=SIZE[0], height=SIZE[1], shadow_resolution=SHADOW_RESOLUTION, cases=FRAMES)
+        spec = dict(width=size[0], height=size[1], shadow_resolution=SHADOW_RESOLUTION, cases=cases)
         with tempfile.TemporaryDirectory() as tmp:
-            for (label, frame), (image, fr) in float32_frames(spec, states, Path(tmp)).items():
+            for (label, frame), (image, fr) in ({} if args.quick else float32_frames(spec, states, Path(tmp))).items():
                 out[(label, frame, "float32")] = image, render_reference(scenes[label], fr)
     rows, figures = [], {}
     FIGURES.mkdir(exist_ok=True)
@@ -80,22 +86,23 @@ def main() -> None:
         name = f"{label.replace('-', '')}_{frame}_{dtype}"
         figures[name] = dict(must_match_rms=must, may_differ_rms=may, performer_rms=perf,
                              must_match_share=float((~differ).mean()))
-        write_png(FIGURES / f"noh_reference_{name}.png", difference_map(image, ref, differ))
+        if not args.quick:
+            write_png(FIGURES / f"noh_reference_{name}.png", difference_map(image, ref, differ))
         print(f"{label} frame {frame} {dtype}: must match {(~differ).mean():.2f} of the image, relative RMS "
               f"{must:.4f}; may differ {may:.4f}; performer {perf:.4f}", flush=True)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    for dtype in ("float64", "float32"):
+    for dtype in ("float64",) if args.quick else ("float64", "float32"):
         worst = max(v["must_match_rms"] for k, v in figures.items() if k.endswith(dtype))
         may = [v["may_differ_rms"] for k, v in figures.items() if k.endswith(dtype)]
         rows.append(dict(
             area="noh", target=f"composed frame vs brute force, relative RMS outside the penumbrae <= "
                                           f"{TARGET:.0%} ({dtype})",
-            measured=f"worst {worst:.4f} over both motions x 2 frames at {SIZE[0]}x{SIZE[1]}; where they may differ "
+            measured=f"worst {worst:.4f} over {sum(map(len, cases.values()))} frames at {size[0]}x{size[1]}; where they may differ "
                      f"{min(may):.3f}-{max(may):.3f}; {wall:.0f} s wall, {cpu:.0f} s CPU, load "
                      f"{os.getloadavg()[0]:.1f}, {cpu_description()}",
             status="met" if worst <= TARGET else "missed",
             figures={k: v for k, v in figures.items() if k.endswith(dtype)}))
-    write_results("noh_reference", rows)
+    write_results("noh_reference", rows, quick=args.quick)
 
 
 if __name__ == "__main__":
