@@ -97,8 +97,8 @@ def main() -> None:
         rows.append(dict(
             area="noh", target=f"composed frame vs brute force, relative RMS outside the penumbrae <= "
                                           f"{TARGET:.0%} ({dtype})",
-            measured=f"worst {worst:.4f} over {sum(map(len, cases.values()))} frames at {size[0]}x{size[1]}; where they may differ "
-                     f"{min(may):.3f}-{max(may):.3f}; {wall:.0f} s wall, {cpu:.0f} s CPU, load "
+            measured=f"worst {worst:.4f} over {sum(map(len, cases.values()))} frames at {size[0]}x{size[1]}; "
+                     f"where they may differ {min(may):.3f}-{max(may):.3f}; {wall:.0f} s wall, {cpu:.0f} s CPU, load "
                      f"{os.getloadavg()[0]:.1f}, {cpu_description()}",
             status="met" if worst <= TARGET else "missed",
             figures={k: v for k, v in figures.items() if k.endswith(dtype)}))
