@@ -85,7 +85,7 @@ def run_object(folder: Path, work: Path, *, stride: int, pipeline: bool) -> dict
     import jax
     import jax.numpy as jnp
 
-    from fitting import fit_maps, load_capture, merge_capture, relight
+    from fitting import FitSettings, fit_maps, load_capture, merge_capture, relight
     from fitting.evaluate import (
         angular_error_deg,
         heldout_split,
@@ -141,10 +141,10 @@ def run_object(folder: Path, work: Path, *, stride: int, pipeline: bool) -> dict
     out["normals_deg"] = angular_error_deg(normals, gt, mask)[0]
     out["lambertian_normals_deg"] = angular_error_deg(np.asarray(lambertian_fit(obs).normal), gt, mask)[0]
     if pipeline:   # before: the per-texel least-squares fit (paper 004's method)
-        plain = fit_maps(train, progress=False, method="plain")
+        plain = fit_maps(train, FitSettings(method="plain"), progress=False)
         out["plain_heldout"] = heldout(plain)
-        out["plain_normals_deg"] = angular_error_deg(np.asarray(fit_maps(obs, progress=False, method="plain").normal),
-                                                     gt, mask)[0]
+        all_plain = fit_maps(obs, FitSettings(method="plain"), progress=False)
+        out["plain_normals_deg"] = angular_error_deg(np.asarray(all_plain.normal), gt, mask)[0]
     out["load_after"] = round(os.getloadavg()[0], 2)
     return out
 

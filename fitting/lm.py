@@ -1,23 +1,24 @@
 """Per-texel Levenberg-Marquardt fit of the anisotropic model (paper 004 eq. 1, design.md):
 rho_d and rho_s eliminated by variable projection (`fitting._varpro`), the normal and two slopes
-fitted by optimistix's LM (default), jaxopt's or a native loop, from photometric-stereo and
-brightest-highlight starts. The parametrization, the objective and the starts: docs/fitting.md,
-"The per-texel fit".
+fitted by one of the backends (`BACKENDS`: `fitting.lm_optimistix`, the default, `lm_jaxopt`,
+`lm_native`) from photometric-stereo and brightest-highlight starts; the robust method's material
+start, reweighted geometry rounds and appearance round. The parametrization, the objective and
+the starts: docs/fitting.md, "The per-texel fit".
 """
 
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxrender.brdf import MODELS, BTFTexel, reflectance, tangent_frame
+from jaxrender.brdf import BTFTexel, reflectance, tangent_frame
 from jaxrender.maths import normalize
 
+from . import lm_jaxopt, lm_native, lm_optimistix
 from ._varpro import (
     RIDGE,
     S_MAX,
@@ -27,7 +28,6 @@ from ._varpro import (
     centre,
     columns,
     columns_from_frame,
-    gauss_newton,
     geometry_to_theta,
     lights_of,
     project_rho_columns,
@@ -35,15 +35,17 @@ from ._varpro import (
     projected_cost_offset_and_rho_d,
     theta_to_geometry,
 )
+from .materials import COLOUR_EPS, MaterialTable, material_priors, no_materials
+from .residual import Problem, Stage, VarProResidual, chol_solve
+from .settings import FitSettings
 
-__all__ = ["TexelFit", "MaterialTable", "SOLVERS", "fit_texels", "fit_texel", "initial_theta", "theta_to_geometry",
-           "geometry_to_theta", "basis", "project_rho", "texel_cost", "texel_residuals",
-           "default_tolerances", "DEFAULT_SOLVER", "S_MIN", "S_MAX", "SIGMA_STARTS"]
+__all__ = ["TexelFit", "fit_texels", "fit_texel", "initial_theta", "theta_to_geometry", "geometry_to_theta", "basis",
+           "project_rho", "texel_cost", "texel_residuals", "default_tolerances", "BACKENDS", "S_MIN", "S_MAX",
+           "SIGMA_STARTS", "ROBUST_ROUNDS"]
 
-SOLVERS = ("native", "optimistix", "jaxopt")
-DEFAULT_SOLVER = "optimistix"
+BACKENDS = {"optimistix": lm_optimistix.solve, "jaxopt": lm_jaxopt.solve, "native": lm_native.solve}
 SIGMA_STARTS = (0.03, 0.1, 0.3)
-DEFAULT_MAX_STEPS = 40
+ROBUST_ROUNDS = 2   # reweighted geometry solves of the robust method, before its appearance solve
 _ALIGN = 16   # float32 lanes of a 64-byte vector
 
 
@@ -67,46 +69,8 @@ class TexelFit(eqx.Module):
         return BTFTexel.single(self.rho_d, self.rho_s, self.normal, self.sigma_x, self.sigma_y)
 
 
-# The priors a `MaterialTable` gives a texel (one setting for every capture): log-slopes within
-# TAU_LOG_SLOPE of the material's (a factor e^0.35 = 1.4 at one standard deviation), rho_s within
-# TAU_RHO_REL of the material's plus TAU_RHO_FLOOR of the texel's RMS observation (so a material
-# without a lobe still lets a texel's lobe through where its data pin it).
-TAU_LOG_SLOPE = 0.35
-TAU_RHO_REL = 0.35
-TAU_RHO_FLOOR = 0.05
 DIM_FRACTION = 0.08
 ROBUST_SCALE = 2.5  # Cauchy weights: an observation ROBUST_SCALE times the median residual off weighs 1/2
-COLOUR_EPS = 1e-3   # log(rho_d + eps): the colour a texel's material is recognised by
-
-
-class MaterialTable(eqx.Module):
-    """Materials shared by the texels of a capture (estimated by `fitting.materials`): per row
-    the centre of a Gaussian prior on a texel's lobe, and the capture's noise level.
-
-    A texel fitted with a table takes the prior of the row that explains its start best (the
-    MAP class: projected objective plus the row's log share); the prior's weights are the noise
-    variance (`noise` times the texel's mean squared observation) over the prior's variance.
-    Rows with `log_share` = -inf are unused (tables are padded to one shape)."""
-
-    rho_s: Float[Array, "M 3"]
-    s: Float[Array, "M 2"]         # the solver's log-slopes (`geometry_to_theta`) of the material's lobe
-    log_share: Float[Array, " M"]  # log of the fraction of the sample's texels in the material
-    colour: Float[Array, "M 3"]    # mean log(rho_d + COLOUR_EPS) of the material's texels
-    colour_spread: Float[Array, " M"]   # their standard deviation (per channel, pooled)
-    noise: Float[Array, ""]        # residual variance of the sample's fits / their mean squared observation
-
-    @property
-    def size(self) -> int:
-        return int(self.rho_s.shape[0])
-
-
-def _material_priors(table: MaterialTable, mean_sq: Float[Array, ""]) -> Prior:
-    """The `M` priors of a table for a texel of mean squared observation `mean_sq` (stacked)."""
-    var = table.noise * mean_sq
-    tau_rho = TAU_RHO_REL * jnp.mean(table.rho_s, axis=-1) + TAU_RHO_FLOOR * jnp.sqrt(mean_sq)
-    rho_weight = var / jnp.maximum(tau_rho * tau_rho, jnp.finfo(mean_sq.dtype).tiny)
-    s_weight = jnp.broadcast_to(var / TAU_LOG_SLOPE**2, rho_weight.shape)
-    return Prior(table.rho_s, rho_weight, table.s, s_weight)
 
 
 def default_tolerances(dtype) -> tuple[float, float]:
@@ -167,116 +131,6 @@ def texel_cost(rho_d, rho_s, normal, sigma_x, sigma_y, ratio, weight, light_dirs
     return 0.5 * jnp.sum(r * r)
 
 
-def _cholesky(a):
-    """Lower Cholesky factor of a small symmetric positive definite matrix, unrolled: scalar
-    operations only, which vmapped over texels are elementwise array ops (much faster on XLA:CPU
-    than batched LAPACK calls on tiny matrices). Pivots are floored at `tiny`."""
-    n = a.shape[0]
-    low = [[jnp.zeros((), a.dtype)] * n for _ in range(n)]
-    tiny = jnp.finfo(a.dtype).tiny
-    for i in range(n):
-        for j in range(i + 1):
-            s = a[i, j]
-            for k in range(j):
-                s = s - low[i][k] * low[j][k]
-            low[i][j] = jnp.sqrt(jnp.maximum(s, tiny)) if i == j else s / low[j][j]
-    return jnp.stack([jnp.stack(row) for row in low])
-
-
-def _forward_sub(low, b):
-    n = low.shape[0]
-    y = []
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s = s - low[i, k] * y[k]
-        y.append(s / low[i, i])
-    return jnp.stack(y)
-
-
-def _chol_solve(a, b):
-    """Solve a x = b for a small symmetric positive definite `a` (unrolled, see `_cholesky`)."""
-    low = _cholesky(a)
-    return _forward_sub(low.T[::-1, ::-1], _forward_sub(low, b)[::-1])[::-1]
-
-
-class Stage(NamedTuple):
-    """What a solve of a real-capture fit (`fit_texel`'s rounds) fits: `ambient` 1/0 (a constant
-    per channel projected out, `fitting._varpro.centre`) and `free` (4: 1 where the parameter
-    moves, 0 where it is held)."""
-
-    ambient: Float[Array, ""]
-    free: Float[Array, "4"]
-
-
-def _staged(gn, stage: Stage | None):
-    """(objective, gradient, Gauss-Newton matrix) with the held parameters' rows and columns of
-    the matrix replaced by the identity and their gradient by 0: a damped step leaves them."""
-    if stage is None:
-        return gn.objective, gn.grad, gn.matrix
-    f = stage.free
-    return gn.objective, f * gn.grad, jnp.outer(f, f) * gn.matrix + jnp.diag(1.0 - f)
-
-
-def _ambient(stage: Stage | None):
-    return None if stage is None else stage.ambient
-
-
-def _compress(theta, args, model):
-    """(r, J): a 5-residual problem with the same value and Gauss-Newton model as the projected fit.
-
-    With objective c, gradient g and Gauss-Newton matrix M of the projected fit (`gauss_newton`, one
-    pass over the lights) and M = L L^T: J = L^T and r = (L^-1 g, sqrt(2c - |L^-1 g|^2)) give
-    0.5 |r|^2 = c, J^T r = g and J^T J = M, so 0.5 |r + J d|^2 is the projected fit's own
-    Gauss-Newton model in d (J's fifth row is 0). (This is the QR compression of least squares: the 3L residuals and
-    their `3L x 4` Jacobian are replaced by 5 numbers and a 4 x 4 triangle.) M is lifted by 1e-7 of
-    its mean diagonal to stay definite where a parameter has no effect (a black texel).
-    """
-    ratio_cl, w, lights, prior, stage = args
-    objective, grad, m = _staged(gauss_newton(theta, ratio_cl, w, lights, model, prior, ambient=_ambient(stage)), stage)
-    dt = m.dtype
-    lift = 1e-7 * jnp.trace(m) / 4 + jnp.finfo(dt).tiny ** 0.5
-    low = _cholesky(m + lift * jnp.eye(4, dtype=dt))
-    r_lin = _forward_sub(low, grad)
-    two_c = 2 * objective
-    lin2 = jnp.sum(r_lin * r_lin)
-    # |L^-1 g|^2 <= 2c in exact arithmetic (a projection of the residual); keep 0.5 |r|^2 = c under rounding
-    r_lin = r_lin * jnp.where(lin2 > two_c, jnp.sqrt(two_c / jnp.where(lin2 > 0, lin2, 1.0)), 1.0)
-    rest = jnp.sqrt(jnp.maximum(two_c - jnp.sum(r_lin * r_lin), 0.0))
-    r = jnp.concatenate([r_lin, rest[None]])
-    jac = jnp.concatenate([low.T, jnp.zeros((1, 4), dt)])
-    # Any orthogonal map of (r, J) keeps the model; this reflection spreads the large `rest` over
-    # all five components so that optimistix's per-component test of the change in r (relative
-    # to |r_i|) sees no component that is zero at the optimum (as L^-1 g is) and only rounding.
-    v = jnp.full((5,), -1 / 5**0.5, dt).at[4].add(1.0)   # e5 - u, u = (1, 1, 1, 1, 1) / sqrt(5)
-    reflect = jnp.eye(5, dtype=dt) - 2 * jnp.outer(v, v) / jnp.sum(v * v)
-    return reflect @ r, reflect @ jac
-
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
-def _residual(theta, args, model):
-    return _compress(theta, args, model)[0]
-
-
-@_residual.defjvp
-def _residual_jvp(model, primals, tangents):
-    """The tangent J d of the compressed residual (`_compress`); the observations (`args`) are
-    data, not parameters: their tangents are ignored."""
-    theta, args = primals
-    d_theta, _ = tangents
-    r, jac = _compress(theta, args, model)
-    return r, jac @ d_theta
-
-
-class _VarProResidual(eqx.Module):
-    """theta -> the compressed residual of the projected fit (`_compress`): the solvers' residual."""
-
-    model: str = eqx.field(static=True)
-
-    def __call__(self, theta, args):
-        return _residual(theta, args, self.model)
-
-
 # ---------------------------------------------------------------------------------------------
 # starting values
 
@@ -292,7 +146,7 @@ def _photometric_stereo(ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"], li
         u = jnp.where(use, w, 0.0)
         a = jnp.stack([jnp.stack([jnp.sum(u * l[i] * l[j]) for j in range(3)]) for i in range(3)])
         a = a + (1e-6 * jnp.trace(a) + jnp.finfo(dt).tiny ** 0.5) * jnp.eye(3, dtype=dt)
-        g = _chol_solve(a, jnp.stack([jnp.sum(l[i] * u * y) for i in range(3)]))
+        g = chol_solve(a, jnp.stack([jnp.sum(l[i] * u * y) for i in range(3)]))
         pred = l[0] * g[0] + l[1] * g[1] + l[2] * g[2]
         e = y - pred
         scale = jnp.sqrt(jnp.sum(u * e * e) / jnp.maximum(jnp.sum(u), 1e-30))
@@ -329,7 +183,7 @@ def _material_start(ratio_cl, w, lights, model, table: MaterialTable, ambient=No
     dt = ratio_cl.dtype
     sq = ratio_cl[0] ** 2 + ratio_cl[1] ** 2 + ratio_cl[2] ** 2
     mean_sq = jnp.sum(w * sq) / (3 * jnp.maximum(jnp.sum(w), 1e-30))
-    priors = _material_priors(table, mean_sq)
+    priors = material_priors(table, mean_sq)
     normals = jnp.stack(_start_normals(ratio_cl, w, lights))
 
     def row_score(prior, colour, spread):
@@ -370,141 +224,6 @@ def _initial_theta(ratio_cl, w, lights, model, prior: Prior | None = None, norma
 
 # ---------------------------------------------------------------------------------------------
 # the solve
-
-def _rounding_floor(dt, rtol: float) -> float:
-    """Relative change of the cost below which a step cannot be told from rounding."""
-    return max(rtol * rtol, 8 * float(jnp.finfo(dt).eps))
-
-
-@functools.cache
-def _optimistix_lm():
-    """optimistix's Levenberg-Marquardt (damped Newton descent in a classical trust region), its
-    trust region told the cost's rounding level.
-
-    At the optimum of a float32 fit the cost is known to ~1e-7 relative: a trial step whose
-    predicted and actual changes are both below that is rejected by the classical ratio test
-    (0 / tiny), the region shrinks and the solve runs to max_steps at the minimum, reporting
-    failure. Here such a step is accepted, so optimistix's own termination test (small change of
-    y and of the residuals) decides, as it does on every accepted step.
-    """
-    from collections.abc import Callable
-
-    import lineax as lx
-    import optimistix as optx
-
-    class RoundingAwareTrustRegion(optx.AbstractSearch):
-        floor: float
-        inner: optx.ClassicalTrustRegion
-
-        def init(self, y, f_info_struct):
-            return self.inner.init(y, f_info_struct)
-
-        def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
-            step_size, accept, result, new_state = self.inner.step(first_step, y, y_eval, f_info, f_eval_info, state)
-            f, f_eval = f_info.as_min(), f_eval_info.as_min()
-            predicted = self.inner.predict_reduction(y_eval - y, f_info)   # <= 0
-            noise = self.floor * jnp.abs(f)
-            at_floor = ~first_step & (-predicted <= noise) & (jnp.abs(f_eval - f) <= noise)
-            return step_size, accept | at_floor, result, new_state
-
-    class LevenbergMarquardt(optx.AbstractGaussNewton):
-        rtol: float
-        atol: float
-        norm: Callable
-        descent: optx.DampedNewtonDescent
-        search: RoundingAwareTrustRegion
-        verbose: Callable
-
-        def __init__(self, rtol, atol, floor):
-            self.rtol, self.atol, self.norm = rtol, atol, optx.max_norm
-            # normal equations of the compressed 5 x 4 problem (`_compress`) by Cholesky; lam > 0
-            # keeps them definite
-            self.descent = optx.DampedNewtonDescent(linear_solver=lx.Normal(lx.Cholesky()))
-            self.search = RoundingAwareTrustRegion(floor, optx.ClassicalTrustRegion())
-            self.verbose = lambda **kwargs: None
-
-    return LevenbergMarquardt
-
-
-def _solve_optimistix(fn, theta0, args, max_steps, rtol, atol):
-    import optimistix as optx
-
-    solver = _optimistix_lm()(rtol, atol, _rounding_floor(theta0.dtype, rtol))
-    sol = optx.least_squares(fn, solver, theta0, args, max_steps=max_steps, throw=False)
-    ok = sol.result == optx.RESULTS.successful
-    return sol.value, ok, sol.stats["num_steps"]
-
-
-def _solve_jaxopt(fn, theta0, args, max_steps, rtol, atol):
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        import jaxopt
-
-    solver = jaxopt.LevenbergMarquardt(fn, maxiter=max_steps,
-                                       stop_criterion="madsen-nielsen", xtol=rtol, gtol=atol, tol=atol,
-                                       solver="cholesky", materialize_jac=True, jit=True)
-    with jax.numpy_dtype_promotion("standard"):  # jaxopt multiplies bools into floats internally
-        value, state = solver.run(theta0, args)
-    # The loop stops early only when the stopping criterion holds.
-    ok = state.iter_num < max_steps
-    return value, ok, state.iter_num
-
-
-def _solve_native(fn, theta0, args, max_steps, rtol, atol):
-    """A plain Levenberg-Marquardt loop (Nielsen's damping update) on the projected fit.
-
-    One pass over the lights per step gives cost, gradient g and Gauss-Newton matrix M at the
-    trial point together (`gauss_newton`); the damped step solves (M + lam I) d = -g by an
-    unrolled Cholesky. Termination on an accepted step as optimistix's: |d_i| <= atol + rtol |theta_i|
-    and a cost change <= atol + rtol cost; or when no step can reduce the cost any more in the working
-    precision (a stationary point).
-    """
-    dt = theta0.dtype
-    ratio_cl, w, lights, prior, stage = args
-
-    def linearized(theta):
-        objective, grad, matrix = _staged(gauss_newton(theta, ratio_cl, w, lights, fn.model, prior,
-                                                       ambient=_ambient(stage)), stage)
-        return objective, matrix, grad
-
-    # The loop's first pass evaluates the start itself (d = 0, accepted, not counted as a step):
-    # one copy of the linearization in the compiled program.
-    two = jnp.asarray(2.0, dt)
-
-    def cond(st):
-        return (st["step"] < max_steps) & ~st["done"]
-
-    def body(st):
-        theta, cost, a, g, lam, nu, first = st["theta"], st["cost"], st["a"], st["g"], st["lam"], st["nu"], st["first"]
-        d = jnp.where(first, 0.0, _chol_solve(a + lam * jnp.eye(4, dtype=dt), -g))
-        t_new = theta + d
-        c_new, a_new, g_new = linearized(t_new)
-        pred = 0.5 * jnp.dot(d, lam * d - g)  # predicted reduction of the linear model (> 0)
-        actual = cost - c_new
-        ratio = actual / jnp.maximum(pred, jnp.finfo(dt).tiny)
-        accept = first | ((ratio > 0) & jnp.isfinite(c_new))
-        small_step = jnp.all(jnp.abs(d) <= atol + rtol * jnp.abs(theta))
-        small_df = jnp.abs(actual) <= atol + rtol * cost
-        # a rejected step that could gain at most a rounding-level change of the cost: the cost is
-        # at its minimum up to rounding (in float32 the cost is only known to ~1e-6 relative)
-        stalled = ~accept & (pred <= _rounding_floor(dt, rtol) * cost)
-        done = ~first & jnp.where(accept, small_step & small_df, stalled)
-        lam_acc = lam * jnp.maximum(1 / 3, 1 - (2 * ratio - 1) ** 3)
-        lam_first = 1e-6 * jnp.max(jnp.diagonal(a_new)) + jnp.finfo(dt).tiny ** 0.5
-        return {"theta": jnp.where(accept, t_new, theta), "cost": jnp.where(accept, c_new, cost),
-                "a": jnp.where(accept, a_new, a), "g": jnp.where(accept, g_new, g),
-                "lam": jnp.where(first, lam_first, jnp.where(accept, lam_acc, lam * nu)),
-                "nu": jnp.where(accept, two, nu * 2), "step": st["step"] + jnp.where(first, 0, 1).astype(jnp.int32),
-                "done": done, "first": jnp.zeros((), bool)}
-
-    st0 = {"theta": theta0, "cost": jnp.asarray(jnp.inf, dt), "a": jnp.eye(4, dtype=dt), "g": jnp.zeros(4, dt),
-           "lam": jnp.ones((), dt), "nu": two, "step": jnp.zeros((), jnp.int32), "done": jnp.zeros((), bool),
-           "first": jnp.ones((), bool)}
-    st = jax.lax.while_loop(cond, body, st0)
-    return st["theta"], st["done"], st["step"]
-
 
 def _robust_weights(theta, ratio_cl, w, lights, model, prior, ambient=None):
     """Weights of an iteratively reweighted fit (Cauchy): w_l / (1 + (e_l / (ROBUST_SCALE m))^2),
@@ -547,9 +266,9 @@ def _cauchy(w, e2):
     return _normalized_weights(w / (1.0 + e2 / (ROBUST_SCALE**2 * med)))
 
 
-def _staged_rounds(run, fn, theta0, ratio_cl, w, lights, model, prior, robust_rounds, max_steps, rtol, atol):
-    """The solves of a real-capture fit, one solver body in a loop (compiled once):
-    `robust_rounds` geometry rounds (every parameter, an ambient term projected out, the
+def _robust_rounds(solve, fn, theta0, ratio_cl, w, lights, model, prior, max_steps, rtol, atol):
+    """The solves of the robust method, one solver body in a loop (compiled once):
+    ROBUST_ROUNDS geometry rounds (every parameter, an ambient term projected out, the
     observations reweighted by how badly the lobeless fit at the photometric-stereo normal
     explains them in the first round, `_diffuse_weights`, and the previous round's parameters
     in the others, `_robust_weights`, without the dimmest ones, `_bright_enough`), then an
@@ -565,16 +284,16 @@ def _staged_rounds(run, fn, theta0, ratio_cl, w, lights, model, prior, robust_ro
 
     def round_(i, st):
         th, ok, n = st
-        last = i == robust_rounds
+        last = i == ROBUST_ROUNDS
         stage = jax.tree_util.tree_map(lambda a, b: jnp.where(last, a, b), appearance, geometry)
         w_later = _robust_weights(th, ratio_cl, w_geo, lights, model, prior, ambient=stage.ambient)
         w_r = jnp.where(last, w, jnp.where(i == 0, w_first, w_later))
-        th_r, ok_r, n_r = run(fn, th, (ratio_cl, w_r, lights, prior, stage), max_steps, rtol, atol)
+        th_r, ok_r, n_r = solve(fn, th, Problem(ratio_cl, w_r, lights, prior, stage), max_steps, rtol, atol)
         bad = ~jnp.all(jnp.isfinite(th_r))
-        counts = i >= robust_rounds - 1   # the rounds whose result the fit keeps
+        counts = i >= ROBUST_ROUNDS - 1   # the rounds whose result the fit keeps
         return jnp.where(bad, th, th_r), jnp.where(counts, ok & ok_r & ~bad, ok), n + n_r
 
-    return jax.lax.fori_loop(0, robust_rounds + 1, round_, (theta0, jnp.ones((), bool), jnp.zeros((), jnp.int32)))
+    return jax.lax.fori_loop(0, ROBUST_ROUNDS + 1, round_, (theta0, jnp.ones((), bool), jnp.zeros((), jnp.int32)))
 
 
 def _bright_enough(ratio_cl, w):
@@ -592,23 +311,16 @@ def _bright_enough(ratio_cl, w):
 
 
 def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs: Float[Array, "L 3"],
-              view_dir: Float[Array, "3"], *, model: str = "reciprocal", solver: str = DEFAULT_SOLVER,
-              max_steps: int = DEFAULT_MAX_STEPS, rtol: float | None = None, atol: float | None = None,
-              theta0: Float[Array, "4"] | None = None, materials: MaterialTable | None = None,
-              robust_rounds: int = 0) -> TexelFit:
-    """Fit one texel (not jitted; `fit_texels` is the jitted, vmapped version). `materials`: fit
-    under the prior of the texel's material (`MaterialTable`); None: no prior. `robust_rounds`:
-    reweight the observations by their residuals and solve again, this many times (`_robust_weights`)."""
-    if model not in MODELS:
-        raise ValueError(f"unknown model {model!r}: use one of {MODELS}")
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown solver {solver!r}: use one of {SOLVERS}")
+              view_dir: Float[Array, "3"], settings: FitSettings = FitSettings(), *,
+              materials: MaterialTable | None = None) -> TexelFit:
+    """Fit one texel (not jitted; `fit_texels` is the jitted, vmapped version) as `settings` say
+    (`method`, `solver`, `max_steps`, `model`). The robust method fits under the prior of the
+    texel's material in `materials` (None: a table without priors, `fitting.materials.no_materials`)."""
+    model = settings.model
     ratio = jnp.asarray(ratio)
     dt = ratio.dtype
     weight, light_dirs, view_dir = (jnp.asarray(x, dt) for x in (weight, light_dirs, view_dir))
-    d_rtol, d_atol = default_tolerances(dt)
-    rtol = d_rtol if rtol is None else rtol
-    atol = d_atol if atol is None else atol
+    rtol, atol = default_tolerances(dt)
     # Non-finite observations are invalid; keep them out of every product.
     finite = jnp.all(jnp.isfinite(ratio), axis=-1) & jnp.isfinite(weight)
     weight = jnp.where(finite, jnp.maximum(weight, 0.0), 0.0)
@@ -616,21 +328,18 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
     w = _normalized_weights(weight)
     n_valid = jnp.sum(w > 0)
     lights = lights_of(light_dirs, view_dir)
-    prior, row = None, jnp.asarray(-1, jnp.int32)
-    ambient = jnp.ones((), dt) if robust_rounds else None
-    if materials is not None:
-        start, prior, row = _material_start(ratio_cl, w, lights, model, materials, ambient=ambient)
-        theta0 = start if theta0 is None else theta0
-    elif theta0 is None:
-        theta0 = _initial_theta(ratio_cl, w, lights, model, ambient=ambient)
-    run = {"optimistix": _solve_optimistix, "jaxopt": _solve_jaxopt, "native": _solve_native}[solver]
-    if robust_rounds:
-        theta, ok, steps = _staged_rounds(run, _VarProResidual(model), theta0, ratio_cl, w, lights, model, prior,
-                                          robust_rounds, max_steps, rtol, atol)
+    solve = BACKENDS[settings.solver]
+    fn = VarProResidual(model)
+    if settings.robust:
+        table = no_materials(dt) if materials is None else materials
+        theta0, prior, row = _material_start(ratio_cl, w, lights, model, table, ambient=jnp.ones((), dt))
+        theta, ok, steps = _robust_rounds(solve, fn, theta0, ratio_cl, w, lights, model, prior, settings.max_steps,
+                                          rtol, atol)
         bad = jnp.zeros((), bool)
     else:
-        theta, ok, steps = run(_VarProResidual(model), theta0, (ratio_cl, w, lights, prior, None), max_steps, rtol,
-                               atol)
+        prior, row = None, jnp.asarray(-1, jnp.int32)
+        theta0 = _initial_theta(ratio_cl, w, lights, model)
+        theta, ok, steps = solve(fn, theta0, Problem(ratio_cl, w, lights, None, None), settings.max_steps, rtol, atol)
         bad = ~jnp.all(jnp.isfinite(theta))
         theta = jnp.where(bad, theta0, theta)
     normal, sx, sy = theta_to_geometry(theta)
@@ -651,19 +360,22 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
                     n_valid=n_valid.astype(jnp.int32), material=row)
 
 
-@functools.partial(jax.jit, static_argnames=("model", "solver", "max_steps", "rtol", "atol", "robust_rounds"))
 def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_dirs: Float[Array, "L 3"],
-               view_dir: Float[Array, "3"], *, model: str = "reciprocal", solver: str = DEFAULT_SOLVER,
-               max_steps: int = DEFAULT_MAX_STEPS, rtol: float | None = None,
-               atol: float | None = None, materials: MaterialTable | None = None,
-               robust_rounds: int = 0) -> TexelFit:
-    """Fit a batch of texels (jitted, vmapped over the leading axis of `ratio` and `weight`).
+               view_dir: Float[Array, "3"], settings: FitSettings = FitSettings(), *,
+               materials: MaterialTable | None = None) -> TexelFit:
+    """Fit a batch of texels (jitted, vmapped over the leading axis of `ratio` and `weight`) as
+    `settings` say (`fit_texel`; `chunk` plays no part here).
 
     A texel's fit is bit-identical in any batch, at any place: the lights are padded with
     weight-0 observations and the batch with copies of its last texel to multiples of `_ALIGN`,
     so every texel's rows start equally aligned and every texel falls in a full vector lane
     (XLA:CPU's remainder loops use scalar exp/log, which round differently).
     """
+    return _fit_texels(ratio, weight, light_dirs, view_dir, materials, settings=settings.program())
+
+
+@functools.partial(jax.jit, static_argnames="settings")
+def _fit_texels(ratio, weight, light_dirs, view_dir, materials, *, settings: FitSettings) -> TexelFit:
     ratio, weight, light_dirs = jnp.asarray(ratio), jnp.asarray(weight), jnp.asarray(light_dirs)
     n_texels = ratio.shape[0]
     pad_l = -light_dirs.shape[0] % _ALIGN
@@ -676,7 +388,5 @@ def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_
     if pad_t:
         ratio = jnp.concatenate([ratio, jnp.repeat(ratio[-1:], pad_t, axis=0)])
         weight = jnp.concatenate([weight, jnp.repeat(weight[-1:], pad_t, axis=0)])
-    one = functools.partial(fit_texel, model=model, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol,
-                            robust_rounds=robust_rounds)
-    out = jax.vmap(lambda r, w: one(r, w, light_dirs, view_dir, materials=materials))(ratio, weight)
+    out = jax.vmap(lambda r, w: fit_texel(r, w, light_dirs, view_dir, settings, materials=materials))(ratio, weight)
     return jax.tree_util.tree_map(lambda x: x[:n_texels], out) if pad_t else out
