@@ -26,6 +26,7 @@ import functools
 import json
 import os
 from collections.abc import Callable, Iterable, Iterator
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -34,19 +35,23 @@ from jaxrender.io import InputError, atomic_path
 
 from .checkpoint import Checkpoint, fingerprint
 from .hdr import ObservationCounts, Observations
-from .lm import TexelFit, fit_texels
-from .materials import MaterialTable, estimate_materials, no_materials, sample_indices
+from .lm import STEPPING, TexelFit, fit_texels
+from .materials import MaterialTable, estimate_materials, no_materials
 from .settings import FitSettings
 from .store import ObservationStore
 
-__all__ = ["TexelSource", "ChunkPlan", "plan_chunks", "read_chunk", "fit_chunk", "fit_source", "local_chunks",
-           "estimate_table", "empty_fit", "observation_summary", "TILE", "MIN_VALID", "MATERIAL_MIN_VALID",
-           "MATERIALS_FILE"]
+__all__ = ["TexelSource", "FitResult", "ChunkPlan", "plan_chunks", "read_chunk", "fit_chunk", "fit_source",
+           "local_chunks", "estimate_table", "sample_indices", "sample_size", "empty_fit", "observation_summary",
+           "TILE", "MIN_VALID", "MATERIAL_MIN_VALID", "SAMPLE_OBSERVATIONS", "SAMPLE_TEXELS", "MATERIALS_FILE"]
 
 # texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
 TILE = 32
 MIN_VALID = 4  # lights a texel needs for a determined fit (4 nonlinear + 2 linear parameters per channel)
 MATERIAL_MIN_VALID = 8  # valid lights a sampled texel needs to take part in the material pass
+# texels sampled for the material pass: as many observations whatever the light count (2048 texels
+# at DiLiGenT's 96 lights), between 512 and 2048 texels
+SAMPLE_OBSERVATIONS = 2048 * 96
+SAMPLE_TEXELS = (512, 2048)
 MATERIALS_FILE = "materials.json"   # the robust fit's material table in the checkpoint directory
 
 Read = Callable[[int, int], tuple[np.ndarray, np.ndarray]]
@@ -55,22 +60,23 @@ Read = Callable[[int, int], tuple[np.ndarray, np.ndarray]]
 @dataclasses.dataclass(frozen=True)
 class TexelSource:
     """What the engine fits: `size` (H, W), the texels to fit (`mask`, H W bool; None: all), each
-    texel's valid light count (`n_valid`, flat), the light and view directions, `read(start, count)`
-    -> (ratio `count L 3`, weight `count L`) of a contiguous range of flat texels, `identity` (what
-    a checkpoint's fingerprint covers besides the settings) and `store` (the observation store it
-    reads, for Dask workers; None in memory)."""
+    texel's light counts (`counts`, H W maps), the light and view directions, `read(start, count)`
+    -> (ratio `count L 3`, weight `count L`) of a contiguous range of flat texels, `name` (the
+    file an input error names), `identity` (what a checkpoint's fingerprint covers besides the
+    settings) and `store` (the observation store it reads, for Dask workers; None in memory)."""
 
     size: tuple[int, int]
     mask: np.ndarray | None
-    n_valid: np.ndarray
+    counts: ObservationCounts
     light_dirs: np.ndarray
     view_dir: np.ndarray
     read: Read
+    name: str
     identity: tuple
     store: ObservationStore | None = None
 
     @classmethod
-    def of_observations(cls, obs: Observations) -> "TexelSource":
+    def of_observations(cls, obs: Observations, name: str | os.PathLike | None = None) -> "TexelSource":
         h, w = obs.size
         ratio = np.asarray(obs.ratio).reshape(h * w, obs.n_lights, 3)
         weight = np.asarray(obs.weight).reshape(h * w, obs.n_lights)
@@ -83,12 +89,12 @@ class TexelSource:
         # the inputs' identity: dtype, directions, the first light of every texel, the shape, the mask
         identity = (str(ratio.dtype), dirs, view, np.asarray(ratio[:, :1]), str(ratio.shape),
                     np.ones((h, w), bool) if mask is None else mask)
-        return cls((h, w), mask, np.sum(weight > 0, axis=1), dirs, view, read, identity)
+        return cls((h, w), mask, obs.counts, dirs, view, read, os.fspath(name or "observations"), identity)
 
     @classmethod
     def of_store(cls, store: ObservationStore) -> "TexelSource":
-        return cls(tuple(store.size), store.mask(), np.asarray(store.counts().n_valid).reshape(-1),
-                   store.light_dirs.astype(np.float32), store.view_dir.astype(np.float32), store.read,
+        return cls(tuple(store.size), store.mask(), store.counts(), store.light_dirs.astype(np.float32),
+                   store.view_dir.astype(np.float32), store.read, os.fspath(store.info.get("capture") or store.path),
                    ("store", store.fingerprint), store)
 
 
@@ -175,6 +181,9 @@ def _tile_program(tile: int, settings: FitSettings):
     """
 
     def fn(ratio, weight, light_dirs, view_dir, materials):
+        if settings.solver in STEPPING:   # the whole share in lanes (`fitting.lanes`)
+            return fit_texels(ratio.reshape((-1,) + ratio.shape[2:]), weight.reshape((-1,) + weight.shape[2:]),
+                              light_dirs, view_dir, settings, materials=materials)
         out = jax.lax.map(lambda rw: fit_texels(rw[0], rw[1], light_dirs, view_dir, settings, materials=materials),
                           (ratio, weight))
         return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
@@ -222,7 +231,7 @@ def empty_fit(n: int) -> TexelFit:
                     normal=np.tile(np.float32([0.0, 0.0, 1.0]), (n, 1)), sigma_x=zeros + np.float32(0.1),
                     sigma_y=zeros + np.float32(0.1), residual=zeros, cost=zeros, converged=np.zeros(n, bool),
                     num_steps=np.zeros(n, np.int32), n_valid=np.zeros(n, np.int32),
-                    material=np.full(n, -1, np.int32))
+                    material=np.full(n, -1, np.int32), lambertian=np.zeros(n, bool))
 
 
 def _progress_bar(total: int, progress: bool | None):
@@ -247,6 +256,20 @@ def _assemble_maps(results: list[TexelFit], plan: ChunkPlan) -> TexelFit:
     return jax.tree.map(place, empty_fit(total), *results)
 
 
+def sample_size(n_lights: int) -> int:
+    """Texels the material pass samples from a capture of `n_lights` lights."""
+    return int(np.clip(SAMPLE_OBSERVATIONS // max(n_lights, 1), *SAMPLE_TEXELS))
+
+
+def sample_indices(valid_texels: np.ndarray, count: int) -> np.ndarray:
+    """Up to `count` indices of `valid_texels` (flat texel indices), evenly strided (deterministic)."""
+    valid_texels = np.asarray(valid_texels)
+    if valid_texels.size <= count:
+        return valid_texels
+    pick = np.linspace(0, valid_texels.size - 1, count).round().astype(np.int64)
+    return valid_texels[pick]
+
+
 def estimate_table(source: TexelSource, plan: ChunkPlan, settings: FitSettings,
                    checkpoint: Checkpoint | None) -> MaterialTable:
     """The global pass of a robust fit: the material table of a sample of the plan's texels with
@@ -259,7 +282,9 @@ def estimate_table(source: TexelSource, plan: ChunkPlan, settings: FitSettings,
             return MaterialTable.from_json(json.loads(saved.read_text()))
         except (OSError, ValueError, KeyError, TypeError):
             pass   # unreadable: estimate again
-    texels = sample_indices(plan.texels[source.n_valid[plan.texels] >= MATERIAL_MIN_VALID])
+    n_valid = np.asarray(source.counts.n_valid).reshape(-1)
+    texels = sample_indices(plan.texels[n_valid[plan.texels] >= MATERIAL_MIN_VALID],
+                            sample_size(np.shape(source.light_dirs)[0]))
     if texels.size:
         ratio, weight = read_texels(source.read, texels, window=max(plan.padded, 1))
         n = int(texels.size)
@@ -305,17 +330,28 @@ def local_chunks(source: TexelSource, plan: ChunkPlan, checkpoint: Checkpoint | 
     return fit_todo
 
 
+class FitResult(NamedTuple):
+    """A source's fit: what the BTF writer writes (`fitting.writer.write_fit`)."""
+
+    maps: TexelFit                 # `H W ...` maps (`empty_fit` outside the mask)
+    table: MaterialTable | None    # the robust method's materials (None: plain)
+    counts: ObservationCounts      # the source's light counts
+    mask: np.ndarray | None        # the texels fitted (None: all)
+    observations: dict             # `observation_summary` of the counts
+
+
 def fit_source(source: TexelSource, settings: FitSettings, *, partial_dir: str | os.PathLike | None = None,
                executor=local_chunks, progress: bool | None = None,
-               on_chunk: Callable[[int], object] | None = None) -> tuple[TexelFit, MaterialTable | None]:
-    """Every texel of `source` fitted as `settings` say: (`H W` maps, the material table of a
-    robust fit or None).
+               on_chunk: Callable[[int], object] | None = None) -> FitResult:
+    """Every texel of `source` fitted as `settings` say. First its counts are checked
+    (`observation_summary`: `InputError` when most texels have no valid observation).
 
     `partial_dir`: checkpoint finished chunks there and reuse those already present (a directory
     written for other inputs or settings is emptied first). `executor(source, plan, checkpoint,
     settings, table)` gives the function that fits a list of chunks (`local_chunks`, or
     `fitting.cluster.DaskChunks`). `progress`: None = a tqdm bar on a terminal only.
     """
+    summary = observation_summary(source.counts, source.mask, source.name)   # before any work
     checkpoint = None
     if partial_dir is not None:
         checkpoint = Checkpoint(partial_dir).prepare(fingerprint(settings.key(), *source.identity))
@@ -334,7 +370,7 @@ def fit_source(source: TexelSource, settings: FitSettings, *, partial_dir: str |
                 on_chunk(i)
     finally:
         bar.close()
-    return _assemble_maps(results, plan), table
+    return FitResult(_assemble_maps(results, plan), table, source.counts, source.mask, summary)
 
 
 def observation_summary(counts: ObservationCounts, mask: np.ndarray | None, source) -> dict:

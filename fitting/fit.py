@@ -27,7 +27,7 @@ from jaxrender.io import output_lock
 
 from .capture import CaptureError
 from .cluster import DaskChunks, dask_client, describe_scheduler
-from .engine import TexelSource, fit_source, local_chunks, observation_summary
+from .engine import FitResult, TexelSource, fit_source, local_chunks
 from .hdr import Observations
 from .ingest import DEFAULT_MEMORY_GB, ingest_capture, repair_store
 from .lm import TexelFit
@@ -51,7 +51,7 @@ def fit_maps(obs: Observations, settings: FitSettings | None = None, *,
     `progress`: None = a tqdm bar on a terminal only, False = never, True = always.
     """
     return fit_source(TexelSource.of_observations(obs), settings or FitSettings(), partial_dir=partial_dir,
-                      progress=progress, on_chunk=on_chunk)[0]
+                      progress=progress, on_chunk=on_chunk).maps
 
 
 def fit_observations(obs: Observations, btf_dir: str | os.PathLike, settings: FitSettings | None = None, *,
@@ -62,15 +62,13 @@ def fit_observations(obs: Observations, btf_dir: str | os.PathLike, settings: Fi
     btf_dir = Path(btf_dir)
     if np.asarray(obs.ratio).dtype != np.float32:
         raise ValueError("fit_observations fits float32 observations")
-    mask = None if obs.mask is None else np.asarray(obs.mask, bool)
-    summary = observation_summary(obs.counts, mask, btf_dir)  # before any work: a fit of nothing is an error
+    source = TexelSource.of_observations(obs, btf_dir)
     with output_lock(btf_dir):
         begin_output(btf_dir)
         t0, c0 = time.perf_counter(), time.process_time()
-        maps, table = fit_source(TexelSource.of_observations(obs), settings, partial_dir=btf_dir / PARTIAL,
-                                 progress=progress)
-        return write_fit(btf_dir, maps, obs.counts, mask, settings, table, observations=summary, pyramid=pyramid,
-                         seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0, meta=meta)
+        result = fit_source(source, settings, partial_dir=btf_dir / PARTIAL, progress=progress)
+        return write_fit(btf_dir, result, settings, pyramid=pyramid, seconds=time.perf_counter() - t0,
+                         cpu_seconds=time.process_time() - c0, meta=meta)
 
 
 def fit_store_maps(store: ObservationStore, settings: FitSettings | None = None, *,
@@ -78,12 +76,12 @@ def fit_store_maps(store: ObservationStore, settings: FitSettings | None = None,
                    on_chunk: Callable[[int], object] | None = None) -> TexelFit:
     """`TexelFit` of `H W ...` maps of every texel of `store`, chunks checkpointed in `partial_dir`
     (resumed when present). `scheduler`: see `fitting.cluster`."""
-    return _fit_store(store, settings or FitSettings(), Path(partial_dir), scheduler, progress, on_chunk)[0]
+    return _fit_store(store, settings or FitSettings(), Path(partial_dir), scheduler, progress, on_chunk).maps
 
 
 def _fit_store(store: ObservationStore, settings: FitSettings, partial_dir: Path, scheduler, progress,
-               on_chunk=None):
-    """(maps, table) of a store's fit, in this process or on the cluster `scheduler`."""
+               on_chunk=None) -> FitResult:
+    """A store's fit, in this process or on the cluster `scheduler`."""
     source = TexelSource.of_store(store)
     if scheduler is None:
         return fit_source(source, settings, partial_dir=partial_dir, executor=local_chunks, progress=progress,
@@ -114,27 +112,24 @@ def fit_store(store_dir: str | os.PathLike, btf_dir: str | os.PathLike, settings
 
 def _store_to_btf(store: ObservationStore, btf_dir: Path, settings: FitSettings, *, pyramid: bool, scheduler,
                   progress, meta: dict | None = None) -> Path:
-    """`fit_store` with BTF_DIR's lock held: repair what the file listing shows, fit (repairing what
-    the reads find), write."""
-    damage = store.scan()
-    if damage:
-        repair_store(store, damage, progress=progress)
-    counts, mask = store.counts(), store.mask()
-    summary = observation_summary(counts, mask, store.info.get("capture") or store.path)  # before any work
+    """`fit_store` with BTF_DIR's lock held: repair what the file listing shows damaged, fit (and
+    repair what the chunks' reads find, resuming from the checkpoint), write."""
     t0, c0 = time.perf_counter(), time.process_time()
+    damage = None   # first: what the file listing shows
     for attempt in range(MAX_REPAIRS + 1):
+        repair_store(store, damage, progress=progress)
         try:
-            maps, table = _fit_store(store, settings, btf_dir / PARTIAL, scheduler, progress)
+            result = _fit_store(store, settings, btf_dir / PARTIAL, scheduler, progress)
             break
-        except StoreDamaged as damaged:   # found by a chunk's read: write it again, resume from the checkpoint
+        except StoreDamaged as damaged:   # found by a chunk's read
             if attempt == MAX_REPAIRS:
                 raise
-            repair_store(store, damaged.damage, progress=progress)
+            damage = damaged.damage
     seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
     info = {"capture": store.info.get("capture"), "store": {"dtype": store.dtype, "fingerprint": store.fingerprint},
             "scheduler": describe_scheduler(scheduler), **(meta or {})}
-    return write_fit(btf_dir, maps, counts, mask, settings, table, observations=summary, pyramid=pyramid,
-                     seconds=seconds, cpu_seconds=None if scheduler is not None else cpu_seconds, meta=info)
+    return write_fit(btf_dir, result, settings, pyramid=pyramid, seconds=seconds,
+                     cpu_seconds=None if scheduler is not None else cpu_seconds, meta=info)
 
 
 def fit_capture(source: str | os.PathLike, btf_dir: str | os.PathLike, settings: FitSettings | None = None, *,

@@ -12,13 +12,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
 
-from .residual import rounding_floor
+from .residual import VarProResidual, rounding_floor
 
-__all__ = ["RoundingAwareTrustRegion", "LevenbergMarquardt", "solve"]
+__all__ = ["RoundingAwareTrustRegion", "LevenbergMarquardt", "Steps", "solve"]
 
 
 class RoundingAwareTrustRegion(optx.AbstractSearch):
@@ -60,6 +62,51 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
 
 def _silent(**kwargs):
     return None
+
+
+class Steps(eqx.Module):
+    """One texel's solve, step by step (`fitting.lanes`): the iterations of `optx.least_squares`
+    (`solver.init`, then `solver.step` and `solver.terminate` until it terminates, fails or has
+    taken `max_steps` steps), the solver's state carried by the lane."""
+
+    model: str = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+    rtol: float = eqx.field(static=True)
+    atol: float = eqx.field(static=True)
+
+    def _parts(self, theta, problem):
+        solver = LevenbergMarquardt(self.rtol, self.atol, rounding_floor(theta.dtype, self.rtol))
+        residual = VarProResidual(self.model)
+
+        def fn(y, args):
+            return residual(y, args), None
+
+        state = solver.init(fn, theta, problem, {}, jax.ShapeDtypeStruct((5,), theta.dtype), None, frozenset())
+        return solver, fn, state
+
+    def start(self, theta0, problem):
+        _, _, state = self._parts(theta0, problem)
+        dynamic, _ = eqx.partition(state, eqx.is_array)
+        return {"y": theta0, "state": dynamic, "steps": jnp.zeros((), jnp.int32), "terminate": state.terminate,
+                "result": state.result}
+
+    def running(self, st):
+        return ~st["terminate"] & (st["result"] == optx.RESULTS.successful) & (st["steps"] < self.max_steps)
+
+    def result(self, st):
+        ok = st["terminate"] & (st["result"] == optx.RESULTS.successful)
+        return st["y"], ok, st["steps"]
+
+    def step(self, st, problem):
+        solver, fn, init = self._parts(st["y"], problem)
+        static = eqx.partition(init, eqx.is_array)[1]
+        state = eqx.combine(st["state"], static)
+        y, new_state, _ = solver.step(fn, st["y"], problem, {}, state, frozenset())
+        terminate, result = solver.terminate(fn, st["y"], problem, {}, new_state, frozenset())
+        finite = jnp.all(jnp.isfinite(st["y"]))
+        result = optx.RESULTS.where(finite, result, optx.RESULTS.nonfinite)
+        return {"y": y, "state": eqx.partition(new_state, eqx.is_array)[0], "steps": st["steps"] + 1,
+                "terminate": terminate, "result": result}
 
 
 def solve(fn, theta0, problem, max_steps, rtol, atol):

@@ -34,11 +34,9 @@ from jaxrender.brdf import SIGMA_FLOOR
 
 from ._varpro import Prior, columns, geometry_to_theta, lights_of
 
-__all__ = ["MaterialTable", "estimate_materials", "sample_indices", "material_priors", "no_materials",
-           "MAX_MATERIALS", "SAMPLE_TEXELS", "COLOUR_EPS"]
+__all__ = ["MaterialTable", "estimate_materials", "material_priors", "no_materials", "MAX_MATERIALS", "COLOUR_EPS"]
 
 MAX_MATERIALS = 6     # rows of a table: the lobeless material and up to 5 with a lobe
-SAMPLE_TEXELS = 2048  # texels sampled for the global pass
 LOBE_SHARE = 0.02     # a lobe "carries a visible share" above this fraction of a texel's light
 MIN_MEMBERS = 64      # sampled texels per material, at least
 COLOUR_SPREAD_FLOOR = 0.05
@@ -108,15 +106,6 @@ def material_priors(table: MaterialTable, mean_sq: Float[Array, ""]) -> Prior:
     return Prior(table.rho_s, rho_weight, table.s, s_weight)
 
 
-def sample_indices(valid_texels: np.ndarray, count: int = SAMPLE_TEXELS) -> np.ndarray:
-    """Up to `count` indices of `valid_texels` (flat texel indices), evenly strided (deterministic)."""
-    valid_texels = np.asarray(valid_texels)
-    if valid_texels.size <= count:
-        return valid_texels
-    pick = np.linspace(0, valid_texels.size - 1, count).round().astype(np.int64)
-    return valid_texels[pick]
-
-
 def no_materials(dtype=np.float32, sample: int = 0) -> MaterialTable:
     """A table with only the lobeless material and no noise: priors of weight 0."""
     rho_s = np.zeros((MAX_MATERIALS, 3), dtype)
@@ -141,24 +130,25 @@ def _columns_of(normals, s, light_dirs, view_dir, model):
 
 def _shared_lobe_fit(ratio, w, a, b):
     """Alternating least squares of one shared rho_s (3) and per-texel rho_d (T 3) >= 0:
-    min sum_t sum_l w (R - rho_d_t a - rho_s b)^2. Returns (rho_s, per-texel cost T)."""
-    saa = np.maximum(np.sum(w * a * a, axis=1), 1e-30)
-    sbb = float(np.sum(w * b * b)) + 1e-3 * float(np.sum(w * a * a))   # a ridge: no lobe where b vanishes
+    min sum_t sum_l w (R - rho_d_t a - rho_s b)^2. Returns (rho_s, per-texel cost T).
+
+    Every quantity is a per-texel sum over the lights, taken once: the rounds cost T, not T L."""
+    wa, wb = w * a, w * b
+    saa = np.maximum(np.sum(wa * a, axis=1), 1e-30)
+    sab = np.sum(wa * b, axis=1)
+    sbb_t = np.sum(wb * b, axis=1)
+    sbb = float(np.sum(sbb_t)) + 1e-3 * float(np.sum(saa))   # a ridge: no lobe where b vanishes
+    ha = np.einsum("tl,tlc->tc", wa, ratio)
+    hb = np.einsum("tl,tlc->tc", wb, ratio)
+    srr = np.einsum("tl,tlc->tc", w, ratio * ratio)
     rho_s = np.zeros(3)
     for _ in range(_ALS_ROUNDS):
-        rho_d = np.maximum(np.einsum("tl,tlc->tc", w * a, ratio - rho_s * b[..., None]) / saa[:, None], 0.0)
-        resid = ratio - rho_d[:, None, :] * a[..., None]
-        rho_s = np.maximum(np.einsum("tl,tlc->c", w * b, resid) / sbb, 0.0)
-    rho_d = np.maximum(np.einsum("tl,tlc->tc", w * a, ratio - rho_s * b[..., None]) / saa[:, None], 0.0)
-    r = ratio - rho_d[:, None, :] * a[..., None] - rho_s * b[..., None]
-    return rho_s, 0.5 * np.einsum("tl,tlc->t", w, r * r)
-
-
-def _lobeless_cost(ratio, w, a):
-    saa = np.maximum(np.sum(w * a * a, axis=1), 1e-30)
-    rho_d = np.maximum(np.einsum("tl,tlc->tc", w * a, ratio) / saa[:, None], 0.0)
-    r = ratio - rho_d[:, None, :] * a[..., None]
-    return 0.5 * np.einsum("tl,tlc->t", w, r * r)
+        rho_d = np.maximum((ha - rho_s * sab[:, None]) / saa[:, None], 0.0)
+        rho_s = np.maximum((hb.sum(0) - np.einsum("tc,t->c", rho_d, sab)) / sbb, 0.0)
+    rho_d = np.maximum((ha - rho_s * sab[:, None]) / saa[:, None], 0.0)
+    cost = (srr - 2 * rho_d * ha - 2 * rho_s * hb + rho_d * rho_d * saa[:, None] + 2 * rho_d * rho_s * sab[:, None]
+            + rho_s * rho_s * sbb_t[:, None])
+    return rho_s, 0.5 * np.maximum(cost, 0.0).sum(1)
 
 
 def _spread(x: np.ndarray) -> float:

@@ -12,9 +12,9 @@ import numpy as np
 
 from jaxrender.io import complete_level, remove_temporaries, write_btf, write_btf_previews
 
+from .engine import FitResult
 from .hdr import ObservationCounts
 from .lm import TexelFit, default_tolerances
-from .materials import MaterialTable
 from .pyramid import pyramid_channels
 from .settings import FitSettings
 
@@ -48,20 +48,20 @@ def level0_channels(maps: TexelFit, counts: ObservationCounts, mask: np.ndarray 
     return {k: np.asarray(v, np.float32) for k, v in c.items()}
 
 
-def write_fit(btf_dir: Path, maps: TexelFit, counts: ObservationCounts, mask: np.ndarray | None,
-              settings: FitSettings, table: MaterialTable | None, *, observations: dict, pyramid: bool,
-              seconds: float, cpu_seconds: float | None = None, meta: dict | None = None) -> Path:
-    """Previews of level 0, then level 0 and the EM pyramid of fitted maps with `btf.json` last (it
-    appears only once every level is written); removes `.partial/` and any temporaries.
-    `observations`: the counts' summary (`fitting.engine.observation_summary`)."""
-    level0 = level0_channels(maps, counts, mask)
+def write_fit(btf_dir: Path, result: FitResult, settings: FitSettings, *, pyramid: bool, seconds: float,
+              cpu_seconds: float | None = None, meta: dict | None = None) -> Path:
+    """Previews of level 0, then level 0 and the EM pyramid of the fit `result` with `btf.json` last
+    (it appears only once every level is written); removes `.partial/` and any temporaries."""
+    maps, table, mask = result.maps, result.table, result.mask
+    level0 = level0_channels(maps, result.counts, mask)
     inside = np.ones(np.shape(maps.sigma_x), bool) if mask is None else np.asarray(mask, bool)
     rtol, atol = default_tolerances(np.float32)  # the fit always sees float32 observations
     fit = {**settings.describe(), "rtol": rtol, "atol": atol, "devices": jax.local_device_count(),
            "converged_fraction": float(np.mean(maps.converged[inside])) if inside.any() else 0.0,
            "median_residual": float(np.median(maps.residual[inside])) if inside.any() else 0.0,
            "median_steps": float(np.median(maps.num_steps[inside])) if inside.any() else 0.0,
-           "seconds": round(seconds, 3), "observations": observations}
+           "lambertian_fraction": float(np.mean(maps.lambertian[inside])) if inside.any() else 0.0,
+           "seconds": round(seconds, 3), "observations": result.observations}
     if cpu_seconds is not None:  # this process's CPU time (robust to a shared machine's load)
         fit["cpu_seconds"] = round(cpu_seconds, 3)
     if table is not None:

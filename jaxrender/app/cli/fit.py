@@ -6,21 +6,12 @@ from __future__ import annotations
 
 import json
 
-from fitting import FitSettings, fit_capture
+from fitting import fit_capture
 from fitting.ingest import DEFAULT_MEMORY_GB
-from fitting.settings import (
-    DEFAULT_CHUNK,
-    DEFAULT_MAX_STEPS,
-    DEFAULT_METHOD,
-    DEFAULT_MODEL,
-    DEFAULT_SOLVER,
-    METHODS,
-    SOLVERS,
-)
 from fitting.store import DEFAULT_STORE_DTYPE, STORE_DTYPES
-from jaxrender.brdf import MODELS
 
 from .arguments import positive_float, positive_int
+from .fit_options import add_fit_settings, fit_settings
 
 
 def configure(parser):
@@ -28,18 +19,7 @@ def configure(parser):
                         help="capture directory (capture.json + images) or observation store (`fitting ingest`)")
     parser.add_argument("--out", required=True, metavar="BTF_DIR",
                         help="output BTF directory (rerun on the same one to resume an interrupted fit)")
-    parser.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER,
-                        help=f"Levenberg-Marquardt backend (default {DEFAULT_SOLVER}; native = fitting.lm_native's "
-                             "own loop)")
-    parser.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD,
-                        help=f"default {DEFAULT_METHOD}: materials shared by the texels, shadows and highlights as "
-                             "outliers (measured captures); plain: per-texel least squares (paper 004)")
-    parser.add_argument("--chunk", type=positive_int, default=DEFAULT_CHUNK,
-                        help=f"texels per chunk: bounds memory, one checkpoint each (default {DEFAULT_CHUNK})")
-    parser.add_argument("--max-steps", type=positive_int, default=DEFAULT_MAX_STEPS,
-                        help=f"Levenberg-Marquardt steps per solve (default {DEFAULT_MAX_STEPS})")
-    parser.add_argument("--model", choices=MODELS, default=DEFAULT_MODEL,
-                        help=f"model form (default {DEFAULT_MODEL}; paper = eq. 1 as printed)")
+    add_fit_settings(parser)
     parser.add_argument("--no-pyramid", action="store_true", help="write level 0 only (skip the EM pyramid)")
     parser.add_argument("--keep-store", action="store_true",
                         help="keep BTF_DIR/.store/ (the ingested observations) once the BTF is complete")
@@ -58,10 +38,8 @@ def configure(parser):
 
 
 def run(args) -> int:
-    settings = FitSettings(method=args.method, solver=args.solver, chunk=args.chunk, max_steps=args.max_steps,
-                           model=args.model)
-    out = fit_capture(args.capture_dir, args.out, settings, pyramid=not args.no_pyramid, keep_store=args.keep_store,
-                      store_dtype=args.store_dtype, memory_gb=args.memory_gb,
+    out = fit_capture(args.capture_dir, args.out, fit_settings(args), pyramid=not args.no_pyramid,
+                      keep_store=args.keep_store, store_dtype=args.store_dtype, memory_gb=args.memory_gb,
                       scheduler=args.scheduler or args.dask_workers)
     info = json.loads((out / "btf.json").read_text()).get("fit", {})
     print(f"{out}: converged {info.get('converged_fraction', float('nan')):.1%}, "
