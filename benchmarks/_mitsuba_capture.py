@@ -95,7 +95,8 @@ def render_capture(out_dir: str | Path, *, size: int = SIZE, lights: int = LIGHT
         print()
     manifest = {"format": "jaxrender-capture", "version": 1, "size": [size, size], "response": "linear",
                 "exposures_s": [1.0], "view": {"direction": [0.0, 0.0, 1.0]}, "mask": "mask.png",
-                "source": f"Mitsuba 3 scalar_rgb render, {spp} spp, path depth {DEPTH} (benchmarks/_mitsuba_capture.py)",
+                "source": f"Mitsuba 3 scalar_rgb render, {spp} spp, path depth {DEPTH} "
+                          "(benchmarks/_mitsuba_capture.py)",
                 "lights": entries}
     (out / "capture.json").write_text(json.dumps(manifest, indent=1))
     return out

@@ -131,8 +131,6 @@ def run_object(name: str, work: Path, *, quick: bool) -> dict:
                                             fit_cpu_s=meta["fit"].get("cpu_seconds"))
             normals = read_normal_map(btf / "level_00.exr", obs.size)
             out[f"normals_deg_{method}"] = angular_error_deg(normals, truth, mask)[0]
-            if method == "default":
-                out["lambertian_fraction"] = meta["fit"].get("lambertian_fraction")
 
         def timed(fn):
             w0, c0 = time.perf_counter(), time.process_time()
@@ -142,8 +140,8 @@ def run_object(name: str, work: Path, *, quick: bool) -> dict:
         _, cold, cold_cpu = timed(lambda: fit_maps(obs, default, progress=False))
         _, warm, warm_cpu = timed(lambda: fit_maps(obs, default, progress=False))
         source = TexelSource.of_observations(obs)
-        _, table_s, table_cpu = timed(lambda: estimate_table(source, plan_chunks(source.size, default.chunk,
-                                                                                source.mask), default, None))
+        _, table_s, table_cpu = timed(lambda: estimate_table(source, plan_chunks(source.size, default, source.mask),
+                                                                  default, None))
         _, plain_warm, plain_cpu = timed(lambda: fit_maps(obs, plain, progress=False))
         command = out["command_default"]
         out["time"] = {"compile_s": round(cold - warm, 2), "material_pass_s": round(table_s, 2),

@@ -87,7 +87,7 @@ def fit_chunk_task(store_dir: str, fingerprint_: str, partial: str, index: int, 
     store = _worker_store(store_dir, fingerprint_)
     source = TexelSource.of_store(store)
     try:
-        plan = plan_chunks(source.size, settings.chunk, source.mask)  # this process's devices
+        plan = plan_chunks(source.size, settings, source.mask)  # this process's devices
         data = read_chunk(source.read, plan, index)
     except StoreDamaged as damaged:
         return damaged

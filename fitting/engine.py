@@ -42,10 +42,15 @@ from .store import ObservationStore
 
 __all__ = ["TexelSource", "FitResult", "ChunkPlan", "plan_chunks", "read_chunk", "fit_chunk", "fit_source",
            "local_chunks", "estimate_table", "sample_indices", "sample_size", "empty_fit", "observation_summary",
-           "TILE", "MIN_VALID", "MATERIAL_MIN_VALID", "SAMPLE_OBSERVATIONS", "SAMPLE_TEXELS", "MATERIALS_FILE"]
+           "TILE", "LANES_TILE", "MIN_VALID", "MATERIAL_MIN_VALID", "SAMPLE_OBSERVATIONS", "SAMPLE_TEXELS",
+           "MATERIALS_FILE"]
 
-# texels per vmapped solve: the solver loop runs until the slowest texel of a tile is done; small tiles stay in cache
+# texels per compiled tile program: every device runs whole tiles, so a texel meets the same program
+# on 1 or N devices. A backend that steps solves a tile in lanes (`fitting.lanes`; a large tile keeps
+# the lanes busy: their drain at its end costs ~1/30 of it); the others vmap a tile's solves, whose
+# loop runs until its slowest texel is done (small tiles waste little and stay in cache).
 TILE = 32
+LANES_TILE = 2048
 MIN_VALID = 4  # lights a texel needs for a determined fit (4 nonlinear + 2 linear parameters per channel)
 MATERIAL_MIN_VALID = 8  # valid lights a sampled texel needs to take part in the material pass
 # texels sampled for the material pass: as many observations whatever the light count (2048 texels
@@ -123,24 +128,27 @@ class ChunkPlan:
         return int(self.texels.size)
 
 
-def _layout(chunk: int, n_devices: int) -> tuple[int, int]:
+def _layout(chunk: int, n_devices: int, tile: int) -> tuple[int, int]:
     """(tile, texels per device) of a chunk: every device fits whole tiles of `tile` texels.
 
-    The tile size depends on the chunk only, never on the device count, so each texel is fitted
-    by the same compiled tile program (same vector shapes, same rounding) on 1 or N devices.
+    The tile size depends on the chunk and the backend only, never on the device count, so each
+    texel is fitted by the same compiled tile program (same vector shapes, same rounding) on 1 or N
+    devices.
     """
-    tile = min(TILE, chunk)
+    tile = min(tile, chunk)
     per_device = -(-chunk // (n_devices * tile)) * tile
     return tile, per_device
 
 
-def plan_chunks(size: tuple[int, int], chunk: int, mask: np.ndarray | None = None) -> ChunkPlan:
+def plan_chunks(size: tuple[int, int], settings: FitSettings, mask: np.ndarray | None = None) -> ChunkPlan:
     """The chunks of the texels of `size` inside `mask` (`H W` bool; None: all) for this process's
-    local devices."""
+    local devices, `settings.chunk` texels each."""
+    chunk = settings.chunk
     total = size[0] * size[1]
     texels = np.arange(total) if mask is None else np.flatnonzero(np.asarray(mask, bool).reshape(-1))
     n = max(int(texels.size), 1)
-    tile, per_device = _layout(min(chunk, n), jax.local_device_count())
+    tile, per_device = _layout(min(chunk, n), jax.local_device_count(),
+                               LANES_TILE if settings.solver in STEPPING else TILE)
     starts = tuple(range(0, texels.size, chunk))
     return ChunkPlan(tuple(size), texels, starts, tuple(min(chunk, texels.size - s) for s in starts), tile,
                      per_device * jax.local_device_count())
@@ -170,7 +178,7 @@ def read_chunk(read: Read, plan: ChunkPlan, index: int) -> tuple[np.ndarray, np.
 
 @functools.lru_cache(maxsize=None)
 def _tile_program(tile: int, settings: FitSettings):
-    """One device's share: `lax.map` over tiles of `tile` texels, each one vmapped solve.
+    """One device's share: `lax.map` over tiles of `tile` texels (`fitting.lm.fit_texels` each).
 
     Every device runs this same program on a contiguous share of the chunk (inputs committed to
     the device; JAX dispatches asynchronously, so the devices work at once). A texel keeps its
@@ -181,9 +189,6 @@ def _tile_program(tile: int, settings: FitSettings):
     """
 
     def fn(ratio, weight, light_dirs, view_dir, materials):
-        if settings.solver in STEPPING:   # the whole share in lanes (`fitting.lanes`)
-            return fit_texels(ratio.reshape((-1,) + ratio.shape[2:]), weight.reshape((-1,) + weight.shape[2:]),
-                              light_dirs, view_dir, settings, materials=materials)
         out = jax.lax.map(lambda rw: fit_texels(rw[0], rw[1], light_dirs, view_dir, settings, materials=materials),
                           (ratio, weight))
         return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
@@ -231,7 +236,7 @@ def empty_fit(n: int) -> TexelFit:
                     normal=np.tile(np.float32([0.0, 0.0, 1.0]), (n, 1)), sigma_x=zeros + np.float32(0.1),
                     sigma_y=zeros + np.float32(0.1), residual=zeros, cost=zeros, converged=np.zeros(n, bool),
                     num_steps=np.zeros(n, np.int32), n_valid=np.zeros(n, np.int32),
-                    material=np.full(n, -1, np.int32), lambertian=np.zeros(n, bool))
+                    material=np.full(n, -1, np.int32))
 
 
 def _progress_bar(total: int, progress: bool | None):
@@ -355,7 +360,7 @@ def fit_source(source: TexelSource, settings: FitSettings, *, partial_dir: str |
     checkpoint = None
     if partial_dir is not None:
         checkpoint = Checkpoint(partial_dir).prepare(fingerprint(settings.key(), *source.identity))
-    plan = plan_chunks(source.size, settings.chunk, source.mask)
+    plan = plan_chunks(source.size, settings, source.mask)
     table = estimate_table(source, plan, settings, checkpoint) if settings.robust else None
     fit_todo = executor(source, plan, checkpoint, settings, table)
     results = [checkpoint.load(i, count) if checkpoint is not None else None for i, count in enumerate(plan.counts)]

@@ -32,7 +32,7 @@ def solve_in_lanes(steps, theta0, per_texel, make):
     """(theta `N 4`, converged `N`, steps `N`) of every texel's solve from `theta0` (`N 4`): the
     problem of texel i is `make(x[i] for every leaf x of per_texel)`."""
     n = theta0.shape[0]
-    lanes = min(LANES, -(-n // 16) * 16)
+    lanes = LANES   # always: a lane's arithmetic has one vector shape whatever the batch (bit-identical results)
 
     def problem_of(index):
         i = jnp.minimum(index, n - 1)

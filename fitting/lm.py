@@ -13,7 +13,6 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxrender.brdf import BTFTexel, reflectance, tangent_frame
@@ -42,25 +41,14 @@ from .residual import Problem, Stage, VarProResidual, chol_solve
 from .settings import FitSettings
 
 __all__ = ["TexelFit", "fit_texels", "fit_texel", "initial_theta", "theta_to_geometry", "geometry_to_theta", "basis",
-           "project_rho", "texel_cost", "texel_residuals", "default_tolerances", "validation_lights", "BACKENDS",
-           "STEPPING", "S_MIN", "S_MAX", "SIGMA_STARTS"]
+           "project_rho", "texel_cost", "texel_residuals", "default_tolerances", "BACKENDS", "STEPPING", "S_MIN",
+           "S_MAX", "SIGMA_STARTS", "ROBUST_ROUNDS"]
 
 BACKENDS = {"optimistix": lm_optimistix.solve, "jaxopt": lm_jaxopt.solve, "native": lm_native.solve}
 # backends that step: a batch is solved in lanes (`fitting.lanes`); the others texel by texel
 STEPPING = {"native": lm_native.Steps, "optimistix": lm_optimistix.Steps}
 SIGMA_STARTS = (0.03, 0.1, 0.3)
-# The robust method (one setting for every capture, chosen by leave-one-object-out: benchmarks/RESULTS.md).
-VALIDATION_EVERY = 5   # every 5th light of a capture validates each texel's fit instead of fitting it
-VALIDATION_MIN = 3     # ... when the texel has at least this many valid there
-TRAIN_MIN = 8          # ... and this many valid elsewhere
-RL_DARK, RL_BRIGHT = 0.3, 0.2   # the robust Lambertian estimate drops the darkest 30 % and brightest 20 %
-VALIDATION_MARGIN = 0.0
-ROBUST_ROUNDS = 2
-FIRST_WEIGHTS = "ps"
-START = "full"
-VAL_STAGE = "final"
-APPEARANCE_WEIGHTS = "all"
-RL_START = 0
+ROBUST_ROUNDS = 2   # reweighted geometry solves of the robust method, before its appearance solve
 _ALIGN = 16   # float32 lanes of a 64-byte vector
 
 
@@ -78,8 +66,6 @@ class TexelFit(eqx.Module):
     num_steps: Int[Array, "*T"]
     n_valid: Int[Array, "*T"]
     material: Int[Array, "*T"]     # the row of the `MaterialTable` whose prior the texel took (-1: none)
-    lambertian: Bool[Array, "*T"]  # the robust method kept the robust Lambertian estimate: the fit predicted
-    #                                the texel's validation lights worse
 
     def texel(self) -> BTFTexel:
         """The fit as a one-lobe `BTFTexel` (for `jaxrender.brdf.reflectance` / rendering)."""
@@ -202,8 +188,6 @@ def _material_start(ratio_cl, w, lights, model, table: MaterialTable, ambient=No
     mean_sq = jnp.sum(w * sq) / (3 * jnp.maximum(jnp.sum(w), 1e-30))
     priors = material_priors(table, mean_sq)
     normals = jnp.stack(_start_normals(ratio_cl, w, lights))
-    if RL_START:
-        normals = jnp.concatenate([normals, _robust_lambertian(ratio_cl, w, lights)[0][None]])
 
     def row_score(prior, colour, spread):
         def at(n):
@@ -242,7 +226,7 @@ def _initial_theta(ratio_cl, w, lights, model, prior: Prior | None = None, norma
 
 
 # ---------------------------------------------------------------------------------------------
-# the solve
+# the robust method's weights
 
 def _robust_weights(theta, ratio_cl, w, lights, model, prior, ambient=None):
     """Weights of an iteratively reweighted fit (Cauchy): w_l / (1 + (e_l / (ROBUST_SCALE m))^2),
@@ -300,98 +284,6 @@ def _bright_enough(ratio_cl, w):
 
 
 # ---------------------------------------------------------------------------------------------
-# the robust method
-
-def _validation_fold(w, held):
-    """(training weights, whether the texel validates): the texel's valid lights in `held` (a
-    global fold of the capture's lights, 1 = held back) are kept out of its fit when at least
-    VALIDATION_MIN of them and TRAIN_MIN others are valid; otherwise every light fits it."""
-    valid = w > 0
-    n_held = jnp.sum(valid & (held > 0))
-    n_train = jnp.sum(valid & (held <= 0))
-    use = (n_held >= VALIDATION_MIN) & (n_train >= TRAIN_MIN)
-    return _normalized_weights(jnp.where(use, w * (1 - held), w)), use
-
-
-def _robust_lambertian(ratio_cl, w, lights):
-    """(normal, albedo `3`, squared residual per light `L`) of a rank-trimmed Lambertian fit: the
-    darkest RL_DARK and brightest RL_BRIGHT of the texel's valid observations (by luminance: cast
-    and attached shadows, highlights, inter-reflections) are dropped, least squares on the rest."""
-    dt = ratio_cl.dtype
-    y = ratio_cl[0] + ratio_cl[1] + ratio_cl[2]
-    valid = w > 0
-    n = jnp.sum(valid)
-    rank = jnp.argsort(jnp.argsort(jnp.where(valid, y, jnp.inf)))
-    low = jnp.floor(RL_DARK * n).astype(rank.dtype)
-    high = n - jnp.floor(RL_BRIGHT * n).astype(rank.dtype)
-    keep = valid & (rank >= low) & (rank < high)
-    keep = jnp.where(jnp.sum(keep) >= 3, keep, valid)
-    u = jnp.where(keep, w, 0.0)
-    l = lights.l
-    a = jnp.stack([jnp.stack([jnp.sum(u * l[i] * l[j]) for j in range(3)]) for i in range(3)])
-    a = a + (1e-6 * jnp.trace(a) + jnp.finfo(dt).tiny ** 0.5) * jnp.eye(3, dtype=dt)
-    g = chol_solve(a, jnp.stack([jnp.sum(l[i] * u * y) for i in range(3)]))
-    normal = normalize(g)
-    normal = jnp.where(normal[2] > 0.05, normal, jnp.array([0.0, 0.0, 1.0], dt))
-    shade = jnp.where(lights.geometric, jnp.maximum(l[0] * normal[0] + l[1] * normal[1] + l[2] * normal[2], 0.0), 0.0)
-    saa = jnp.maximum(jnp.sum(u * shade * shade), jnp.finfo(dt).tiny)
-    albedo = jnp.maximum(jnp.stack([jnp.sum(u * shade * ratio_cl[c]) for c in range(3)]) / saa, 0.0)
-    e2 = sum((ratio_cl[c] - albedo[c] * shade) ** 2 for c in range(3))
-    return normal, albedo, e2
-
-
-def _peak_normal(ratio_cl, w, lights, fallback):
-    """The half vector of the texel's brightest valid observation (`fallback` below 3 deg of the horizon)."""
-    y = jnp.where(w > 0, ratio_cl[0] + ratio_cl[1] + ratio_cl[2], -jnp.inf)
-    brightest = jnp.argmax(y)
-    n_peak = normalize(jnp.stack([c[brightest] for c in lights.h]))
-    return jnp.where(n_peak[2] > 0.05, n_peak, fallback)
-
-
-def _robust_start(ratio_cl, w, lights, model, table: MaterialTable, n_rl):
-    """(theta0, prior, row) of a texel under a material table.
-
-    The better of the robust Lambertian normal and the brightest observation's half vector (at
-    slopes 0.1, an ambient term projected out), then each row's lobe at that normal scored by its
-    projected objective under the row's prior plus the noise variance times the colour's negative
-    log-likelihood and -log(share) (a MAP class): the best row's prior is the texel's. The start is
-    the best, under that prior, of the row's lobe and three isotropic slopes (`SIGMA_STARTS`)."""
-    dt = ratio_cl.dtype
-    ambient = jnp.ones((), dt)
-    sq = ratio_cl[0] ** 2 + ratio_cl[1] ** 2 + ratio_cl[2] ** 2
-    mean_sq = jnp.sum(w * sq) / (3 * jnp.maximum(jnp.sum(w), 1e-30))
-    priors = material_priors(table, mean_sq)
-    normals = jnp.stack([n_rl, _peak_normal(ratio_cl, w, lights, n_rl)])
-    mid = SIGMA_STARTS[len(SIGMA_STARTS) // 2]
-    at_mid = jax.vmap(lambda n: projected_cost_offset(geometry_to_theta(n, mid, mid), ratio_cl, w, lights, model,
-                                                      ambient=ambient))(normals)
-    normal = normals[jnp.argmin(at_mid)]
-    pq = geometry_to_theta(normal, mid, mid)[:2]
-
-    def row_score(prior, colour, spread):
-        th = jnp.concatenate([pq, prior.s])
-        score, rho_d = projected_cost_offset_and_rho_d(th, ratio_cl, w, lights, model, prior, ambient=ambient)
-        d = (jnp.log(rho_d + COLOUR_EPS) - colour) / spread
-        # the Gaussian colour likelihood of the material (negative log, up to a constant)
-        return th, score, 0.5 * jnp.sum(d * d) + 3 * jnp.log(spread)
-
-    thetas, scores, colour_nll = jax.vmap(row_score)(priors, table.colour, table.colour_spread)
-    var = table.noise * mean_sq
-    total = jnp.where(jnp.isfinite(table.log_share), scores + 2 * var * (colour_nll - table.log_share), jnp.inf)
-    row = jnp.argmin(total)
-    prior = jax.tree_util.tree_map(lambda x: x[row], priors)
-    cand = jnp.concatenate([thetas[row][None], jax.vmap(lambda sg: geometry_to_theta(normal, sg, sg))(
-        jnp.asarray(SIGMA_STARTS, dt))])
-    score = jax.vmap(lambda th: projected_cost_offset(th, ratio_cl, w, lights, model, prior, ambient=ambient))(cand)
-    return cand[jnp.argmin(score)].astype(dt), prior, row.astype(jnp.int32)
-
-
-def _validation_error(ratio_cl, w_val, a, b, rho_d, rho_s):
-    """sum over the validation lights of w (R - rho_d a - rho_s b)^2 (RGB)."""
-    return sum(jnp.sum(w_val * (ratio_cl[c] - rho_d[c] * a - rho_s[c] * b) ** 2) for c in range(3))
-
-
-# ---------------------------------------------------------------------------------------------
 # fitting a batch
 
 def _solve(settings: FitSettings, theta0, per_texel, lights, stage):
@@ -416,94 +308,57 @@ def _finite_or(theta, fallback):
 
 
 def _plain(ratio_cl, w, lights, settings: FitSettings):
-    """(theta, prior None, row -1, converged, steps, lambertian False) of per-texel least squares."""
+    """(theta, prior None, row -1, converged, steps) of per-texel least squares."""
     model = settings.model
     theta0 = jax.vmap(lambda r, wi: _initial_theta(r, wi, lights, model))(ratio_cl, w)
     theta, ok, steps = _solve(settings, theta0, (ratio_cl, w, None), lights, None)
     theta, bad = _finite_or(theta, theta0)
-    n = theta.shape[0]
-    return theta, None, jnp.full(n, -1, jnp.int32), ok & ~bad, steps, jnp.zeros(n, bool)
+    return theta, None, jnp.full(theta.shape[0], -1, jnp.int32), ok & ~bad, steps
 
 
-def _robust(ratio_cl, w, lights, settings: FitSettings, table: MaterialTable, held):
+def _robust(ratio_cl, w, lights, settings: FitSettings, table: MaterialTable):
     """The robust method on a batch (docs/fitting.md, "Real captures: the robust method"):
-    (theta, prior, row, converged, steps, lambertian)."""
+    (theta, prior, row, converged, steps). ROBUST_ROUNDS geometry solves (every parameter, an
+    ambient term projected out, without the dimmest observations, reweighted by how badly the
+    lobeless fit at the photometric-stereo normal explains them in the first, `_diffuse_weights`,
+    and the previous solve's fit in the others, `_robust_weights`), then an appearance solve (the
+    slopes alone, every valid observation at its weight, no ambient term: the parameters that
+    predict new lights). The solves are one loop over rounds around one lanes solve (one copy of
+    the solver in the compiled program). Converged: the last geometry solve and the appearance
+    solve met their tolerance (earlier solves only move the start of the next one)."""
     model, dt = settings.model, ratio_cl.dtype
-    w_fit, validates = jax.vmap(lambda wi: _validation_fold(wi, held))(w)
-    n_rl, albedo, e2 = jax.vmap(lambda r, wi: _robust_lambertian(r, wi, lights))(ratio_cl, w_fit)
     ambient = jnp.ones((), dt)
-    if START == "full":
-        theta0, prior, row = jax.vmap(lambda r, wi: _material_start(r, wi, lights, model, table, ambient=ambient))(
-            ratio_cl, w_fit)
-    else:
-        n_start = n_rl if START == "lean_rl" else jax.vmap(lambda r, wi: _photometric_stereo(r, wi, lights))(ratio_cl,
-                                                                                                             w_fit)
-        theta0, prior, row = jax.vmap(lambda r, wi, n: _robust_start(r, wi, lights, model, table, n))(
-            ratio_cl, w_fit, n_start)
-    w_geo = jax.vmap(lambda r, wi: _normalized_weights(wi * _bright_enough(r, wi)))(ratio_cl, w_fit)
-    if FIRST_WEIGHTS == "rl":
-        w_first = jax.vmap(_cauchy)(w_geo, e2)
-    else:
-        w_first = jax.vmap(lambda r, wg: _diffuse_weights(r, wg, lights, model, ambient))(ratio_cl, w_geo)
+    theta0, prior, row = jax.vmap(lambda r, wi: _material_start(r, wi, lights, model, table, ambient=ambient))(
+        ratio_cl, w)
+    w_geo = jax.vmap(lambda r, wi: _normalized_weights(wi * _bright_enough(r, wi)))(ratio_cl, w)
+    w_first = jax.vmap(lambda r, wg: _diffuse_weights(r, wg, lights, model, ambient))(ratio_cl, w_geo)
     geometry = Stage(jnp.ones((), dt), jnp.ones(4, dt))
-    theta, ok_g, steps = _solve(settings, theta0, (ratio_cl, w_first, prior), lights, geometry)
-    theta, bad = _finite_or(theta, theta0)
-    for _ in range(ROBUST_ROUNDS - 1):
-        w_r = jax.vmap(lambda th, r, wg, pr: _robust_weights(th, r, wg, lights, model, pr, ambient=ambient))(
-            theta, ratio_cl, w_geo, prior)
-        theta_r, ok_g, steps_r = _solve(settings, theta, (ratio_cl, w_r, prior), lights, geometry)
-        theta, bad = _finite_or(theta_r, theta)
-        steps = steps + steps_r
-    ok_g = ok_g & ~bad
-    if VAL_STAGE == "geometry":
-        lambertian = jax.vmap(lambda *x: _lambertian_wins(lights, model, *x))(ratio_cl, w, w_fit, theta, prior, n_rl,
-                                                                               albedo, validates)
-    # appearance: the slopes alone, on every training observation, no ambient term
     appearance = Stage(jnp.zeros((), dt), jnp.asarray([0.0, 0.0, 1.0, 1.0], dt))
-    w_app = w if VAL_STAGE == "geometry" else w_fit
-    if APPEARANCE_WEIGHTS == "robust":
-        w_app = jax.vmap(lambda th, r, wa, pr: _robust_weights(th, r, wa, lights, model, pr))(theta, ratio_cl, w_app,
-                                                                                              prior)
-    theta_a, ok_a, steps_a = _solve(settings, theta, (ratio_cl, w_app, prior), lights, appearance)
-    theta, bad_a = _finite_or(theta_a, theta)
-    if VAL_STAGE == "geometry":
-        return theta, prior, row, ok_g & ok_a & ~bad_a, steps + steps_a, lambertian
 
-    # validation: the fit against the robust Lambertian estimate on the lights held back
-    lambertian = jax.vmap(lambda *x: _lambertian_wins(lights, model, *x))(ratio_cl, w, w_fit, theta, prior, n_rl,
-                                                                           albedo, validates)
-    ok = ok_g & ok_a & ~bad_a
-    return theta, prior, row, ok, steps + steps_a, lambertian
+    def round_(i, carry):
+        theta, ok, steps = carry
+        last = i == ROBUST_ROUNDS
+        stage = jax.tree_util.tree_map(lambda a, b: jnp.where(last, a, b), appearance, geometry)
+        w_later = jax.vmap(lambda th, r, wg, pr: _robust_weights(th, r, wg, lights, model, pr, ambient=ambient))(
+            theta, ratio_cl, w_geo, prior)
+        weights = jnp.where(last, w, jnp.where(i == 0, w_first, w_later))
+        theta_r, ok_r, steps_r = _solve(settings, theta, (ratio_cl, weights, prior), lights, stage)
+        theta_r, bad = _finite_or(theta_r, theta)
+        kept = i >= ROBUST_ROUNDS - 1   # the rounds whose result the fit keeps
+        return theta_r, jnp.where(kept, ok & ok_r & ~bad, ok), steps + steps_r
 
-
-def _lambertian_wins(lights, model, r, wi, wf, th, pr, n, alb, use):
-    w_val = jnp.where(wf > 0, 0.0, wi)
-    a, b = columns(th, lights, model)
-    rho_d, rho_s = project_rho_columns(a, b, r, wf, prior=pr)
-    shade = jnp.where(lights.geometric, jnp.maximum(_along(lights.l, n), 0.0), 0.0)
-    e_fit = _validation_error(r, w_val, a, b, rho_d, rho_s)
-    e_rl = _validation_error(r, w_val, shade, jnp.zeros_like(shade), alb, jnp.zeros(3, r.dtype))
-    return use & (e_rl * (1 + VALIDATION_MARGIN) < e_fit)
+    n = theta0.shape[0]
+    theta, ok, steps = jax.lax.fori_loop(0, ROBUST_ROUNDS + 1, round_,
+                                         (theta0, jnp.ones(n, bool), jnp.zeros(n, jnp.int32)))
+    return theta, prior, row, ok, steps
 
 
-def _along(rows, u):
-    return rows[0] * u[0] + rows[1] * u[1] + rows[2] * u[2]
-
-
-def _texel_fit(theta, ratio_cl, w, lights, model, prior, row, ok, steps, lambertian, n_valid):
-    """A texel's `TexelFit` at its parameters, rho projected on every valid observation (the
-    robust Lambertian estimate's where `lambertian`)."""
+def _texel_fit(theta, ratio_cl, w, lights, model, prior, row, ok, steps, n_valid):
+    """A texel's `TexelFit` at its parameters, rho projected on every valid observation."""
     dt = ratio_cl.dtype
     normal, sx, sy = theta_to_geometry(theta)
     a, b = columns(theta, lights, model)
     rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w, prior=prior)
-    n_rl, albedo, _ = _robust_lambertian(ratio_cl, w, lights)
-    shade = jnp.where(lights.geometric, jnp.maximum(_along(lights.l, n_rl), 0.0), 0.0)
-    normal = jnp.where(lambertian, n_rl, normal)
-    a = jnp.where(lambertian, shade, a)
-    b = jnp.where(lambertian, 0.0, b)
-    rho_d = jnp.where(lambertian, albedo, rho_d)
-    rho_s = jnp.where(lambertian, 0.0, rho_s)
     diff = [ratio_cl[c] - rho_d[c] * a - rho_s[c] * b for c in range(3)]
     sq_l = diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]
     cost = 0.5 * jnp.sum(w * sq_l)
@@ -515,7 +370,7 @@ def _texel_fit(theta, ratio_cl, w, lights, model, prior, row, ok, steps, lambert
     converged = (ok | exact) & (n_valid > 0)
     return TexelFit(rho_d=rho_d, rho_s=rho_s, normal=normal, sigma_x=sx, sigma_y=sy, residual=residual,
                     cost=cost, converged=converged, num_steps=jnp.asarray(steps, jnp.int32),
-                    n_valid=n_valid.astype(jnp.int32), material=row, lambertian=lambertian)
+                    n_valid=n_valid.astype(jnp.int32), material=row)
 
 
 def _prepare(ratio, weight):
@@ -526,14 +381,6 @@ def _prepare(ratio, weight):
     ratio_cl = jnp.where(finite[None, :], ratio.T, 0.0)
     w = _normalized_weights(weight)
     return ratio_cl, w, jnp.sum(w > 0)
-
-
-def validation_lights(n_lights: int) -> np.ndarray:
-    """The global fold of a capture's lights the robust method holds back from each texel's fit to
-    validate it: every VALIDATION_EVERY-th light (1 = held back)."""
-    if not VALIDATION_EVERY:
-        return np.zeros(n_lights, np.float32)
-    return (np.arange(n_lights) % VALIDATION_EVERY == VALIDATION_EVERY - 1).astype(np.float32)
 
 
 def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_dirs: Float[Array, "L 3"],
@@ -549,8 +396,7 @@ def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_
     (XLA:CPU's remainder loops use scalar exp/log, which round differently), and a texel's solve
     runs the same operations whichever lane it takes (`fitting.lanes`).
     """
-    held = validation_lights(np.shape(light_dirs)[0])
-    return _fit_texels(ratio, weight, light_dirs, view_dir, materials, held, settings=settings.program())
+    return _fit_texels(ratio, weight, light_dirs, view_dir, materials, settings=settings.program())
 
 
 def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs: Float[Array, "L 3"],
@@ -563,11 +409,10 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
 
 
 @functools.partial(jax.jit, static_argnames="settings")
-def _fit_texels(ratio, weight, light_dirs, view_dir, materials, held, *, settings: FitSettings) -> TexelFit:
+def _fit_texels(ratio, weight, light_dirs, view_dir, materials, *, settings: FitSettings) -> TexelFit:
     ratio = jnp.asarray(ratio)
     dt = ratio.dtype
     weight, light_dirs, view_dir = (jnp.asarray(x, dt) for x in (weight, light_dirs, view_dir))
-    held = jnp.asarray(held, dt)
     n_texels = ratio.shape[0]
     pad_l = -light_dirs.shape[0] % _ALIGN
     pad_t = -n_texels % _ALIGN
@@ -576,7 +421,6 @@ def _fit_texels(ratio, weight, light_dirs, view_dir, materials, held, *, setting
         weight = jnp.pad(weight, ((0, 0), (0, pad_l)))
         up = jnp.asarray([[0.0, 0.0, 1.0]], light_dirs.dtype)
         light_dirs = jnp.concatenate([light_dirs, jnp.tile(up, (pad_l, 1))])
-        held = jnp.pad(held, (0, pad_l))
     if pad_t:
         ratio = jnp.concatenate([ratio, jnp.repeat(ratio[-1:], pad_t, axis=0)])
         weight = jnp.concatenate([weight, jnp.repeat(weight[-1:], pad_t, axis=0)])
@@ -584,11 +428,11 @@ def _fit_texels(ratio, weight, light_dirs, view_dir, materials, held, *, setting
     lights = lights_of(light_dirs, view_dir)
     if settings.robust:
         table = no_materials(dt) if materials is None else materials
-        fitted = _robust(ratio_cl, w, lights, settings, table, held)
+        fitted = _robust(ratio_cl, w, lights, settings, table)
     else:
         fitted = _plain(ratio_cl, w, lights, settings)
-    theta, prior, row, ok, steps, lambertian = fitted
-    out = jax.vmap(lambda th, r, wi, pr, ro, o, st, lm, nv: _texel_fit(th, r, wi, lights, settings.model, pr, ro, o,
-                                                                        st, lm, nv))(
-        theta, ratio_cl, w, prior, row, ok, steps, lambertian, n_valid)
+    theta, prior, row, ok, steps = fitted
+    out = jax.vmap(lambda th, r, wi, pr, ro, o, st, nv: _texel_fit(th, r, wi, lights, settings.model, pr, ro, o, st,
+                                                                    nv))(theta, ratio_cl, w, prior, row, ok, steps,
+                                                                         n_valid)
     return jax.tree_util.tree_map(lambda x: x[:n_texels], out) if pad_t else out

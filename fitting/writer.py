@@ -60,7 +60,6 @@ def write_fit(btf_dir: Path, result: FitResult, settings: FitSettings, *, pyrami
            "converged_fraction": float(np.mean(maps.converged[inside])) if inside.any() else 0.0,
            "median_residual": float(np.median(maps.residual[inside])) if inside.any() else 0.0,
            "median_steps": float(np.median(maps.num_steps[inside])) if inside.any() else 0.0,
-           "lambertian_fraction": float(np.mean(maps.lambertian[inside])) if inside.any() else 0.0,
            "seconds": round(seconds, 3), "observations": result.observations}
     if cpu_seconds is not None:  # this process's CPU time (robust to a shared machine's load)
         fit["cpu_seconds"] = round(cpu_seconds, 3)
