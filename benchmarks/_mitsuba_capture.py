@@ -22,7 +22,10 @@ import json
 import math
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
+
+from jaxrender.io import write_exr, write_png
 
 SIZE = 128
 LIGHTS = 96
@@ -69,10 +72,6 @@ def _scene(mi, light, integrator, size, spp, seed):
 def render_capture(out_dir: str | Path, *, size: int = SIZE, lights: int = LIGHTS, spp: int = SPP,
                    progress: bool = False) -> Path:
     """Render the capture into `out_dir` (module docstring); returns it."""
-    import mitsuba as mi
-
-    from jaxrender.io import write_exr, write_png
-
     mi.set_variant("scalar_rgb")
     out = Path(out_dir)
     (out / "images").mkdir(parents=True, exist_ok=True)

@@ -41,10 +41,19 @@ import tempfile
 import time
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from fitting import FitSettings, Observations, fit_maps, load_capture, merge_capture, write_folder_manifest
+from fitting.crossval import cross_validate
+from fitting.engine import TexelSource, estimate_table, plan_chunks
+from fitting.evaluate import angular_error_deg, lambertian_fit, read_normal_map
+
 sys.path.insert(0, str(Path(__file__).parent))
+from _mitsuba_capture import render_capture  # noqa: E402
 from _results import cpu_description, write_results  # noqa: E402
+from capture_scale import write_capture  # noqa: E402
 
 FOLDS = 6
 QUICK_STRIDE, QUICK_FOLDS = 4, 3
@@ -80,10 +89,6 @@ def _cli(*args: str) -> dict:
 
 def _subsample(obs, stride: int):
     """Every `stride`-th row and column of the mask (a smaller object, the same lights)."""
-    import jax.numpy as jnp
-
-    from fitting import Observations
-
     keep = np.zeros(obs.size, bool)
     keep[::stride, ::stride] = True
     mask = keep if obs.mask is None else np.asarray(obs.mask, bool) & keep
@@ -93,17 +98,8 @@ def _subsample(obs, stride: int):
 
 def run_object(name: str, work: Path, *, quick: bool) -> dict:
     """Every figure of one object (this process: its first fit compiles)."""
-    import jax
-
-    from fitting import FitSettings, fit_maps, load_capture, merge_capture, write_folder_manifest
-    from fitting.crossval import cross_validate
-    from fitting.engine import TexelSource, estimate_table, plan_chunks
-    from fitting.evaluate import angular_error_deg, lambertian_fit, read_normal_map
-
     capture, out = work / name, {"object": name, "cpu": cpu_description(), "load": round(os.getloadavg()[0], 2)}
     if name == "mitsuba":
-        from _mitsuba_capture import render_capture
-
         t0 = time.perf_counter()
         render_capture(capture)
         out["render_s"] = round(time.perf_counter() - t0, 1)
@@ -169,8 +165,6 @@ def run_synthetic(work: Path, large: bool) -> list[dict]:
                    check=True, stdout=subprocess.DEVNULL)
     captures.append(("96 x 96 x 540 (16-bit, 6 exposures)", cap96))
     if large:
-        from capture_scale import write_capture
-
         captures.append(("1024 x 1024 x 540 (8-bit, 2 exposures)", write_capture(work, 1024, 540)))
     for label, cap in captures:
         store = work / f"{cap.name}.zarr"

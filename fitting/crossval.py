@@ -20,6 +20,8 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from matplotlib.figure import Figure
+from tqdm.auto import tqdm
 
 from jaxrender.io import atomic_path
 
@@ -108,8 +110,6 @@ def cross_validate(obs: Observations, settings: FitSettings | None = None, *, fo
                    normals: np.ndarray | None = None, progress: bool | None = None) -> CrossValidation:
     """K-fold light cross-validation of the fit of `obs` (module docstring). `normals`: ground-truth
     `H W 3` normals (optional). `progress`: a bar over the folds (None: on a terminal only)."""
-    from tqdm.auto import tqdm
-
     settings = settings or FitSettings()
     mask = np.ones(obs.size, bool) if obs.mask is None else np.asarray(obs.mask, bool)
     records = []
@@ -150,11 +150,6 @@ def figure(result: CrossValidation, out: str | os.PathLike, title: str) -> Path:
     """A PNG of the per-texel held-out error of the fit and of the Lambertian fit (every light
     predicted by the fold that held it out), their ratio, the angular error map with ground truth,
     and the per-fold ratios."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     panels = [("held-out relative RMS: fit", result.heldout_map, "magma"),
               ("held-out relative RMS: Lambertian fit", result.lambertian_map, "magma")]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -162,7 +157,8 @@ def figure(result: CrossValidation, out: str | os.PathLike, title: str) -> Path:
                        "coolwarm"))
     if result.normal_map is not None:
         panels.append(("angular error vs ground truth (deg), mean over folds", result.normal_map, "viridis"))
-    fig, axes = plt.subplots(1, len(panels) + 1, figsize=(4.2 * (len(panels) + 1), 4.2))
+    fig = Figure(figsize=(4.2 * (len(panels) + 1), 4.2))   # no pyplot: no global figure state, any backend
+    axes = fig.subplots(1, len(panels) + 1)
     finite = np.concatenate([p[1][np.isfinite(p[1])] for p in panels[:2]])
     top = float(np.percentile(finite, 99)) if finite.size else 1.0
     for ax, (name, image, cmap) in zip(axes, panels):
@@ -188,5 +184,4 @@ def figure(result: CrossValidation, out: str | os.PathLike, title: str) -> Path:
     out = Path(out)
     with atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
     return out

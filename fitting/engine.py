@@ -30,6 +30,7 @@ from typing import NamedTuple
 
 import jax
 import numpy as np
+from tqdm.auto import tqdm
 
 from jaxrender.io import InputError, atomic_path
 
@@ -241,8 +242,6 @@ def empty_fit(n: int) -> TexelFit:
 
 def _progress_bar(total: int, progress: bool | None):
     """tqdm bar of texels: done / total, rate and time left (None: on a terminal only)."""
-    from tqdm.auto import tqdm
-
     return tqdm(total=total, unit="texel", desc="fit", disable=None if progress is None else not progress,
                 smoothing=0.1)
 

@@ -12,9 +12,17 @@ from __future__ import annotations
 
 import os
 import platform
+import sys
+import tempfile
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
+import jaxlib
 import numpy as np
+
+import fitting
+from fitting import LIGHT_DIRECTIONS, FitSettings, fit_maps, stratified_light_subset, synth_maps, synth_observations
 
 HERE = Path(__file__).resolve().parent
 GOLDEN = HERE / "data" / "fit_golden.npz"
@@ -31,11 +39,6 @@ def diligent_root() -> Path:
 
 def synthetic_observations():
     """16 x 16 texels of the synthetic fabric under 96 stratified lights, float32."""
-    import jax
-    import jax.numpy as jnp
-
-    from fitting import LIGHT_DIRECTIONS, stratified_light_subset, synth_maps, synth_observations
-
     maps = synth_maps(jax.random.key(11), (16, 16))
     maps = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), maps)
     dirs = LIGHT_DIRECTIONS[stratified_light_subset(jax.random.key(12), 96)].astype(np.float32)
@@ -45,10 +48,6 @@ def synthetic_observations():
 
 def cat_observations(tmp: Path):
     """The DiLiGenT cat, every `CAT_STRIDE`-th row and column of its mask (the rest masked out)."""
-    import jax.numpy as jnp
-
-    import fitting
-
     folder = diligent_root() / "catPNG"
     if not folder.is_dir():
         raise FileNotFoundError(f"DiLiGenT data not found at {folder.parent}: set JAXRENDER_DILIGENT")
@@ -63,8 +62,6 @@ def cat_observations(tmp: Path):
 
 
 def _float32(obs):
-    import jax.numpy as jnp
-
     return type(obs)(ratio=jnp.asarray(obs.ratio, jnp.float32), weight=jnp.asarray(obs.weight, jnp.float32),
                      light_dirs=jnp.asarray(obs.light_dirs, jnp.float32),
                      view_dir=jnp.asarray(obs.view_dir, jnp.float32),
@@ -72,12 +69,6 @@ def _float32(obs):
 
 
 def record(path: Path = GOLDEN) -> None:
-    import tempfile
-
-    import jax
-
-    from fitting import FitSettings, fit_maps
-
     jax.config.update("jax_enable_x64", True)
     jax.config.update("jax_numpy_rank_promotion", "raise")
     jax.config.update("jax_numpy_dtype_promotion", "strict")
@@ -99,9 +90,6 @@ def record(path: Path = GOLDEN) -> None:
 def machine() -> str:
     """What the last bits of XLA's CPU code depend on: the CPU model and its vector extensions, the
     jax and jaxlib versions, an instruction-set limit set in XLA_FLAGS."""
-    import jax
-    import jaxlib
-
     model, flags = platform.processor() or platform.machine(), []
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -117,6 +105,4 @@ def machine() -> str:
 
 
 if __name__ == "__main__":
-    import sys
-
     record(Path(sys.argv[1]) if len(sys.argv) > 1 else GOLDEN)

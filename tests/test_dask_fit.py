@@ -1,6 +1,7 @@
 """The fit of a store as Dask tasks: a LocalCluster of 2 worker processes gives the maps of one
 process bit for bit, and a worker killed (SIGKILL) mid-run does not fail the fit."""
 
+import json
 import os
 import signal
 import threading
@@ -13,7 +14,8 @@ import pytest
 distributed = pytest.importorskip("distributed")
 
 from fitting import FitSettings, fit_store, ingest_capture, open_store, synth_capture  # noqa: E402
-from jaxrender.io import read_btf  # noqa: E402
+from fitting.fit import fit_store_maps  # noqa: E402
+from jaxrender.io import InputError, read_btf, write_png  # noqa: E402
 
 DASK_UNCONVERGED_MAX = 2
 CHUNK = 8  # the 55 texels of the mask (8 x 8 texels): 7 tiles, 7 tasks
@@ -60,10 +62,6 @@ MASK[5:, :3] = 0  # 9 texels not fitted: tiles of the mask's texels, not of the 
 
 def _add_mask_and_intensities(capture):
     """The measured-capture extensions on the Dask path: a mask and per-light RGB intensities."""
-    import json
-
-    from jaxrender.io import write_png
-
     write_png(capture / "mask.png", MASK, srgb=False)
     manifest = json.loads((capture / "capture.json").read_text())
     manifest["mask"] = "mask.png"
@@ -127,9 +125,6 @@ def test_a_killed_worker_does_not_fail_the_fit(setup):
 def test_rerun_on_the_cluster_resumes_from_the_tiles_written(setup):
     """The whole cluster died after 3 tiles (here: a local run stopped after 3): a rerun on the
     cluster submits only the other 5 and the maps are the same."""
-    from fitting.fit import fit_store_maps
-    from jaxrender.io import InputError
-
     root, store_dir, ref, client = setup
     out = root / "btf_resumed"
 

@@ -13,10 +13,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fitting import FitSettings, load_capture, merge_capture, relight
+from fitting import FitSettings, fit_maps, load_capture, merge_capture, relight
 from fitting.crossval import cross_validate, light_folds
 from fitting.evaluate import read_normal_map, select_lights
 from fitting.synth import synth_capture
+from jaxrender.io import read_image
 
 FOLDS = 3
 PLAIN = FitSettings(method="plain", chunk=64)
@@ -58,8 +59,6 @@ def test_folds_against_numpy(result):
     """Each fold's held-out error is the fit of the other lights predicting that fold, computed
     again here from a refit; the Lambertian baseline is worse than the fit on this glossy fabric;
     the normals of each fold are close to the truth (8-bit noise, 16 lights per fit)."""
-    from fitting import fit_maps
-
     obs, truth, cv = result
     assert len(cv.folds) == FOLDS
     held = light_folds(obs.n_lights, FOLDS)[1]
@@ -91,8 +90,6 @@ def test_command_table_figure_and_ground_truth(capture, result, tmp_path):
     assert any(line.startswith("ground truth:") and "truth" in line for line in lines)   # found in the capture
     mean = next(line for line in lines if line.strip().startswith("mean")).split()
     assert float(mean[3]) == pytest.approx(result[2].mean_ratio, abs=0.005)   # same fit, another process
-    from jaxrender.io import read_image
-
     image = read_image(out, srgb=False)
     assert image.ndim == 3 and image.shape[1] > image.shape[0]
 
