@@ -4,14 +4,15 @@ API (one function):
 
     from _results import write_results   # benchmarks/ is on sys.path when a script runs
     write_results("desert_shadows", [
-        dict(issue="3 desert", target="horizon maps 256x256x8 >= 10x numpy",
+        dict(area="desert", target="horizon maps 256x256x8 >= 10x numpy",
              measured="12.5x wall (10.7-12.9x) ...", status="met",
              notes="peer: numba sweep, both pinned to core 0", figures={"ratio_median": 12.5}),
     ], quick=args.quick)
 
-Each row needs `issue`, `target` (together they name the row of the summary table: keep them
-stable), `measured` (the text of the "measured" column) and `status` (the verdict: "met",
-"missed", ...); `notes` (text) and `figures` (numbers, for machines) are optional. The file
+Each row needs `area` (one of AREAS: the table of RESULTS.md it belongs to), `target` (together
+they name the row: keep them stable), `measured` (the figure) and `status` (the verdict: "met",
+"missed", ...); `notes` (text, shown after the figure) and `figures` (numbers, for machines) are
+optional. The file
 `benchmarks/results/<name>.json` gets the rows plus the date, the command line, the CPU
 (`cpu_description`: model and vector extension) and the machine load (`os.getloadavg`, the
 machine is shared) at the time of writing. With `quick=True`, or when
@@ -30,7 +31,14 @@ import sys
 from pathlib import Path
 
 RESULTS_DIR = Path(__file__).parent / "results"
-_REQUIRED = ("issue", "target", "measured", "status")
+_REQUIRED = ("area", "target", "measured", "status")
+AREAS = {  # area -> heading of its table in RESULTS.md
+    "shafts": "Light shafts (paper 000)",
+    "desert": "Desert (paper 001)",
+    "fitting": "Fitting woven fabric (paper 004)",
+    "noh": "Takigi Noh (paper 004)",
+    "tools": "Formats and tools",
+}
 _VECTOR_FLAGS = ("avx512f", "avx2", "avx", "sse4_2", "asimd", "sve")  # widest first
 
 
@@ -62,6 +70,8 @@ def write_results(name: str, rows: list[dict], *, quick: bool = False, update: b
         missing = [k for k in _REQUIRED if not isinstance(row.get(k), str) or not row[k]]
         if missing:
             raise ValueError(f"{name}: result row {row!r} lacks text for {missing}")
+        if row["area"] not in AREAS:
+            raise ValueError(f"{name}: result row area {row['area']!r} is not one of {list(AREAS)}")
     redirect = os.environ.get("BENCH_RESULTS_DIR")  # `run_all.py --quick`: a scratch directory, checked there
     if not redirect and (quick or os.environ.get("BENCH_NO_RESULTS")):
         return None

@@ -201,7 +201,7 @@ FOG_BOX = ([-4.6, -0.05, -4.3], [4.6, 4.2, 2.6])  # the fog bank: floor, wall an
 
 def fog_scene(width: int = PAPER_W, height: int = PAPER_H, *, base_dir: Path, shape=(16, 24, 32),
               uniform: bool = False) -> dict:
-    """The grid scene of issue 24: three spot lights (one projecting the polka-dot light map), two
+    """The grid-fog scene: three spot lights (one projecting the polka-dot light map), two
     spheres and a small one casting shadow shafts, a floor and a back wall, in a fog bank given by
     `fog_density` on the box FOG_BOX (written to base_dir/fog_density.npy). The eye and the lights
     are outside the box, every object inside (Mitsuba's surfaces take one medium per side).

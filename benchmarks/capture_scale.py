@@ -1,4 +1,4 @@
-"""Fitting a measured stack at scale (issue 12): ingest and fit apart, memory of every process.
+"""Fitting a measured stack at scale: ingest and fit apart, memory of every process.
 Every fit here is `--method plain` (per-texel least squares of the paper's dense captures; the robust
 default of real captures costs about three solves a texel and is benchmarks/real_captures.py's).
 
@@ -8,7 +8,7 @@ default of real captures costs about three solves a texel and is benchmarks/real
                                                         # (ingest and fit: no pyramid, no speed comparison,
                                                         # no Dask)
 
-A synthetic capture as the issue's user had (8-bit PNG, 2 exposures: 1/640 s and 1/125 s, 540 of
+A synthetic capture as a user of the paper's rig has (8-bit PNG, 2 exposures: 1/640 s and 1/125 s, 540 of
 the paper's light directions, `fitting.synth` maps and sensor) is written once under --root and
 reused. Every step runs as its own command (`fitting ingest`, `fitting fit`, or a short Python
 program for today's in-memory path) under `/usr/bin/time` (the OS's own wall, CPU and peak
@@ -353,7 +353,7 @@ def main() -> None:
         mem = max(s["peak_rss_gb"] for s in steps if s["step"].startswith(f"{r['size']}x"))
         procs = max(p["peak_rss_gb"] for s in steps if s["step"].startswith(f"{r['size']}x") for p in s["processes"])
         target = f"{r['size']}x{r['size']}x{r['lights']}: every process <= 3 GB"
-        rows.append(dict(issue="12 capture scale", target=target,
+        rows.append(dict(area="fitting", target=target,
                          measured=f"peak RSS {max(mem, procs):.2f} GB; fit {r['texels_per_s']:.0f} texels/s",
                          status="met" if max(mem, procs) <= 3 else "missed", figures=r))
     if "paper_projection" in report:

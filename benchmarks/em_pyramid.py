@@ -19,7 +19,7 @@ against a batched numpy implementation of the same EM, and agreement with scikit
     python benchmarks/em_pyramid.py --equal-cores    # only (d): JAX vs numpy at equal cores
     python benchmarks/em_pyramid.py --profile --cores 1   # where the time goes, pinned to one core
 
-(d) Equal cores (issue 16). (b) lets JAX use both cores while the numpy peer runs one thread. Here
+(d) Equal cores. (b) lets JAX use both cores while the numpy peer runs one thread. Here
     the whole woven pyramid is timed twice, interleaved with the peer, wall and CPU, min / median /
     max: pinned to core 0 with every library at one thread (JAX's CPU pools included), and free on
     both cores with the numpy peer split over two processes (benchmarks/_em_numpy.py,
@@ -466,7 +466,7 @@ def equal_cores_report(records: list[dict], quick: bool) -> None:
                      f"numpy {np.median(pc) * 1e3:.0f} ms CPU)")
         ok = ok and med >= 10 and cpu >= 10  # met only if the CPU time (robust to the load) agrees
     write_results("em_pyramid", [dict(
-        issue="5 EM pyramid", target=">= 10x batched numpy over a 256x256 pyramid",
+        area="fitting", target=">= 10x batched numpy over a 256x256 pyramid",
         measured=f"woven {records[0]['size'][0]}^2: " + "; ".join(parts), status="met" if ok else "missed",
         notes="met only if wall median and CPU ratio both reach 10x; 1 core: both pinned to core 0, one thread "
               "each; 2 cores: JAX's pools vs numpy in 2 one-thread processes; where the time goes: RESULTS.md, "

@@ -22,7 +22,7 @@ the shared machine falls on all; wall and CPU time (the pool workers' CPU includ
 max, ratios at the medians with the worst-best range (`_compare.ratio`). Costs are the fit's
 objective 0.5 * sum w (R - model)^2 on the subset for every method.
 
-Equal cores (issue 16): the default run measures twice, in child processes: `--cores 1` (all pinned
+Equal cores: the default run measures twice, in child processes: `--cores 1` (all pinned
 to core 0, JAX and BLAS at one thread, the scipy loops in this process) and `--cores 2` (JAX's
 default pools on both cores; each scipy peer's texel loop split over a 2-process pool of one-thread
 workers).
@@ -314,7 +314,7 @@ def headline(records: dict, quick: bool) -> None:
         met = met and r["wall"][0] >= 50 and r["cpu"][0] >= 50
     rec = next(iter(records.values()))
     write_results("fit_speed", [dict(
-        issue="4 fitting", target=">= 50x scipy least_squares texels/s at equal cost",
+        area="fitting", target=">= 50x scipy least_squares texels/s at equal cost",
         measured=f"optimistix LM, {rec['size']}x{rec['size']}x{rec['lights']}: " + "; ".join(parts),
         status="met" if met else "missed",
         notes=f"strongest peer: variable projection + analytic Jacobian (benchmarks/_fit_varpro_scipy.py); "

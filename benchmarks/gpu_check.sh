@@ -1,5 +1,5 @@
 #!/bin/bash
-# The GPU check of issue 22: the smoke run and headline benchmarks on a GPU machine, logs and rows into $OUT/gpu.tgz.
+# The GPU check: the smoke run and headline benchmarks on a GPU machine, logs and rows into $OUT/gpu.tgz.
 # Wheels of the packages the device lacks (jaxopt, OpenEXR, zarr, numcodecs, google-crc32c, imagecodecs, ...)
 # go in .whl/ (not tracked); usage: HEADLINE="shafts_interactive fit_speed" SMOKE_S=100 PER_S=125 bash benchmarks/gpu_check.sh
 cd "$(dirname "$0")/.."

@@ -148,19 +148,19 @@ def report(by_cores: dict[int, list[dict]], quick: bool) -> None:
              for s, c, o, p, wm, wlo, whi, cm, _ in verdicts]
     met = all(wm >= 1.0 for s, *_rest in verdicts if s == 1024 for wm in [_rest[3]])
     loads = [x for v in verdicts for x in v[8]]
-    rows.append(dict(issue="16 horizon", target="horizon maps x8 ahead of the numba sweep at equal cores (256, 1024)",
+    rows.append(dict(area="desert", target="horizon maps x8 ahead of the numba sweep at equal cores (256, 1024)",
                      measured="; ".join(parts)
                      + f" (ours: default horizon_map; load {min(loads):.1f}-{max(loads):.1f})",
                      status="met" if met else "missed",
                      notes="peer / ours > 1 means ours is faster; numba parallel=True at 2 cores, all pinned at 1 core",
                      figures={f"{s}_{c}": dict(wall_median=wm, wall_worst=wlo, wall_best=whi, cpu_median=cm, peer=p)
                               for s, c, o, p, wm, wlo, whi, cm, _ in verdicts}))
-    # issue 3's row: vs the numpy peer, both on one core (numpy has no threads)
+    # the numpy row: vs the numpy peer, both on one core (numpy has no threads)
     one = [r for r in by_cores.get(1, []) if r["size"] == 256 and "numpy slices" in r["wall"]]
     if one:
         ratios = [_ratio(r, "numpy slices", "jax search") for r in one]
         cpu = [_ratio(r, "numpy slices", "jax search", "cpu")[0] for r in one]
-        rows.append(dict(issue="3 desert", target="horizon maps 256x256x8 >= 10x numpy",
+        rows.append(dict(area="desert", target="horizon maps 256x256x8 >= 10x numpy",
                          measured=", ".join(f"{r['field']}: {m:.1f}x wall ({lo:.1f}-{hi:.1f}), {c:.1f}x CPU"
                                             for r, (m, lo, hi), c in zip(one, ratios, cpu))
                          + " (numpy with slices/views, both pinned to one core)",
@@ -173,7 +173,7 @@ def report(by_cores: dict[int, list[dict]], quick: bool) -> None:
         fits = {k: float(np.polyfit(x, np.log([np.median(r["cpu"][k]) for r in recs]), 1)[0])
                 for k in ("jax sweep", "numba sweep", "jax search")}
         print("\ncost ~ texels^p (1 core, CPU): " + ", ".join(f"{k} p = {v:.2f}" for k, v in fits.items()))
-        rows.append(dict(issue="16 horizon", target="sweep cost linear in texels (64^2..1024^2)",
+        rows.append(dict(area="desert", target="sweep cost linear in texels (64^2..1024^2)",
                          measured=", ".join(f"{k}: texels^{v:.2f}" for k, v in fits.items()) + " (CPU, 1 core)",
                          status="met" if abs(fits["jax sweep"] - 1) < 0.2 else "missed",
                          notes="benchmarks/figures/horizon_scaling.png", figures=fits))

@@ -1,10 +1,10 @@
-"""Frame time of the Takigi Noh scene (issue 25, paper 004 section 4): a 720x480 frame of the
+"""Frame time of the Takigi Noh scene (paper 004 section 4): a 720x480 frame of the
 costumed performer on the Noh stage with everything that moves redone every frame (the robe's
 200 Verlet steps on the skeleton, the performer's mesh, its G-buffer and its mirror image's, 4
 depth maps, PCSS at the performer's and the stage's points, 20 environment + 20 fire samples on
 2-lobe EM BTF levels, the stage's light, the floor's reflection, the flames).
 
-Target (issue 25): <= 1 s median per frame on 2 cores, compile apart, for the built-in motion and
+Target: <= 1 s median per frame on 2 cores, compile apart, for the built-in motion and
 for a captured one (`../shared/data/mocap/dance-short_normal_001.bvh`, or $JAXRENDER_MOCAP).
 
 Timed: the scene + rig setup (robe made and settled, stage cast and lit), the first frame
@@ -170,7 +170,7 @@ def main() -> None:
         print(f"\ntarget{' (quick size: the target is for 720x480)' if args.quick else ''}: frame <= 1 s: "
               f"{verdict} ({med:.3f} s median wall, {med_cpu:.3f} s CPU)")
         rows.append(dict(
-            issue="25 Noh", target=f"720x480 frame, everything redone per frame, {r['label']} motion, <= 1 s",
+            area="noh", target=f"720x480 frame, everything redone per frame, {r['label']} motion, <= 1 s",
             measured=f"{med:.3f} s median frame wall ({min(r['wall']):.3f}-{max(r['wall']):.3f}), {med_cpu:.3f} s "
                      f"process CPU, {len(r['wall'])} frames, compile {r['compile_s']:.1f} s, setup "
                      f"{r['setup_s']:.1f} s, load {r['load']:.1f}",

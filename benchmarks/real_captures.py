@@ -236,7 +236,7 @@ def summary_rows(records: list[dict], synthetic: list[dict]) -> list[dict]:
         harvest = next((r for r in normals if r["object"] == "harvest"), None)
         goal = (f"; harvest vs PS-FCN 15.84: {'met' if harvest['normals_deg_default'] <= 15.84 else 'missed'}"
                 if harvest else "")
-        rows.append(dict(issue="fitting real captures", target="normals <= ST14 on every object (all lights)",
+        rows.append(dict(area="fitting", target="normals <= ST14 on every object (all lights)",
                          measured="; ".join(f"{r['object']} {r['normals_deg_default']:.2f} deg"
                                             + (f" (ST14 {PUBLISHED[r['object']]['ST14']})" if r["object"] in PUBLISHED
                                                else f" (Lambertian {r['lambertian_normals_deg']:.2f})")
@@ -245,7 +245,7 @@ def summary_rows(records: list[dict], synthetic: list[dict]) -> list[dict]:
                          figures={r["object"]: r["normals_deg_default"] for r in normals}))
     ok_mean = all(r["cv_default"]["mean_ratio"] <= HELDOUT_MEAN_TARGET for r in records)
     ok_fold = all(r["cv_default"]["worst_ratio"] <= HELDOUT_FOLD_TARGET for r in records)
-    rows.append(dict(issue="fitting real captures",
+    rows.append(dict(area="fitting",
                      target=f"held-out error <= {HELDOUT_MEAN_TARGET}x the Lambertian fit's averaged over "
                             f"{FOLDS} light folds, no fold above {HELDOUT_FOLD_TARGET}x",
                      measured="; ".join(f"{r['object']} mean {r['cv_default']['mean_ratio']:.2f}x, worst "
@@ -257,7 +257,7 @@ def summary_rows(records: list[dict], synthetic: list[dict]) -> list[dict]:
     timed = [r for r in records if "command_default" in r]
     if timed:
         ok = all(r["command_default"]["wall_s"] <= SPEED_TARGET_S for r in timed)
-        rows.append(dict(issue="fitting real captures",
+        rows.append(dict(area="fitting",
                          target=f"`fitting fit` of a whole object <= {SPEED_TARGET_S:.0f} s wall on 2 cores, "
                                 "compile incl.",
                          measured="; ".join(f"{r['object']} {r['command_default']['wall_s']:.1f} s (CPU "
@@ -267,7 +267,7 @@ def summary_rows(records: list[dict], synthetic: list[dict]) -> list[dict]:
                          figures={r["object"]: r["command_default"]["wall_s"] for r in timed}))
     if synthetic:
         ok = all(s["ratio_wall"] <= PLAIN_RATIO_TARGET for s in synthetic)
-        rows.append(dict(issue="fitting real captures",
+        rows.append(dict(area="fitting",
                          target=f"default method within {PLAIN_RATIO_TARGET}x `--method plain` on synthetic captures",
                          measured="; ".join(f"{s['capture']}: {s['ratio_wall']:.2f}x wall, {s['ratio_cpu']:.2f}x CPU "
                                             f"(plain {s['median']['plain']['wall_s']:.1f} s, default "

@@ -1,4 +1,4 @@
-"""Ripple automaton speed (paper 001 eqs. 1-4, issue 3 section 4; issue 16: like with like).
+"""Ripple automaton speed (paper 001 eqs. 1-4; like with like).
 
 Ours (sims.simulate_ripples, a jitted scan; float32, the package default, and float64) against
 peers doing the same update (benchmarks/_ripples_ref.py: split hop along +x, amounts, shares and
@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _results import write_results  # noqa: E402
 from _ripples_ref import make_jax_roll_gather, make_numba_steps, numpy_step  # noqa: E402
 
-TARGET = 20.0  # issue 3: >= 20x numpy
+TARGET = 20.0  # >= 20x numpy
 
 
 def _timed(fn, steps):
@@ -167,7 +167,7 @@ def main(argv=None) -> int:
     strongest = min(("numba", "numba_par"), key=lambda k: statistics.median(wall[k]))
     threads = 1 if strongest == "numba" else numba.get_num_threads()
     lines = {}
-    for peer, ours, what in (("numpy", "ours32", "ours float32 vs numpy float64 (the issue-3 target)"),
+    for peer, ours, what in (("numpy", "ours32", "ours float32 vs numpy float64 (the target)"),
                              ("numpy", "ours64", "like with like vs numpy (both float64)"),
                              ("numba", "ours64", "like with like vs numba, 1 thread (both float64)"),
                              ("numba_par", "ours64", f"like with like vs numba, {numba.get_num_threads()} threads "
@@ -185,13 +185,13 @@ def main(argv=None) -> int:
     cores_note = (f"every implementation pinned to core {args.pin_core}" if args.pin_core is not None
                   else f"{cores} cores: XLA may use both, numpy and 1-thread numba use one")
     write_results("ripples_speed", [
-        dict(issue="3 desert", target="ripple automaton >= 20x numpy (256x256)",
+        dict(area="desert", target="ripple automaton >= 20x numpy (256x256)",
              measured=f"{rw[1]:.1f}x wall ({rw[0]:.1f}-{rw[2]:.1f}), {rc[1]:.1f}x CPU, ours float32 vs numpy "
                       f"float64, {cores} core(s)",
              status=verdict, figures={"wall_ratio_median": rw[1], "cpu_ratio_median": rc[1]},
-             notes=f"{cores_note}; both sides conserve sand exactly (issue 15); before that change, on the quiet "
+             notes=f"{cores_note}; both sides conserve sand exactly; before that change, on the quiet "
                    "machine: 7.0x wall, 5.3x CPU"),
-        dict(issue="16 peers", target="ripple automaton vs numba, like with like (float64)",
+        dict(area="desert", target="ripple automaton vs numba, like with like (float64)",
              measured=f"{like_w[1]:.2f}x wall ({like_w[0]:.2f}-{like_w[2]:.2f}), {like_c[1]:.2f}x CPU vs numba on "
                       f"{threads} thread(s) (the faster numba here); {cores} core(s) available to both",
              status="ahead" if like_w[1] > 1 else "behind",

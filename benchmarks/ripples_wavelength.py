@@ -1,4 +1,4 @@
-"""Ripple wavelength vs. hop length L0 (paper 001 eqs. 1-4, issue 3 section 1): 128x128 fields
+"""Ripple wavelength vs. hop length L0 (paper 001 eqs. 1-4): 128x128 fields
 from heights uniform in [1.0, 1.5), 3000 steps, L0 = 2, 3.5, 5, 6.5, 8, 9.5 (q = 0.6, b = 2.0,
 D = 0.8), the wavelength along the wind from the peak of the row-averaged power spectrum (FFT).
 A line is fitted for the split hop; the nearest hop (the paper's rounding) is shown for the record.
@@ -90,12 +90,12 @@ def main(argv=None) -> int:
           f"R^2 {', '.join(f'{r:.3f}' for r in r2s)} (min {r2s.min():.3f})")
     verdict = "met" if r2s.min() >= 0.9 else "missed"
     write_results("ripples_wavelength", [
-        dict(issue="3 desert", target="wavelength linear in L0, R^2 >= 0.9",
+        dict(area="desert", target="wavelength linear in L0, R^2 >= 0.9",
              measured=f"lambda = {slope:.3f} L0 + {intercept:.3f} cells, R^2 = {r2:.3f} (seed 0); over seeds "
                       f"0-{args.seeds - 1} slope {slopes.min():.2f}-{slopes.max():.2f}, R^2 >= {r2s.min():.3f}",
              status=verdict, figures={"slope": slope, "intercept": intercept, "r2": r2,
                                       "slopes": slopes.tolist(), "r2s": r2s.tolist()},
-             notes="float32; before exact sand conservation (issue 15): 1.740 L0 + 4.755, R^2 0.978 (seed 0)"),
+             notes="float32; before exact sand conservation: 1.740 L0 + 4.755, R^2 0.978 (seed 0)"),
     ], quick=args.quick)
 
     fig = plt.figure(figsize=(13, 6.5))

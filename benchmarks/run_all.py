@@ -1,18 +1,18 @@
-"""Run every benchmark and rebuild the summary table of benchmarks/RESULTS.md from their results.
+"""Run every benchmark and rebuild the tables of benchmarks/RESULTS.md from their results.
 
     python benchmarks/run_all.py --quick        # every script with --quick (small sizes): do they
                                                 # still run? writes nothing into RESULTS.md or results/:
                                                 # their result rows go to a scratch directory, checked;
                                                 # compiles cached in ~/.cache/jaxrender-bench-quick
-    python benchmarks/run_all.py                # every script at full size (long), then the table
-    python benchmarks/run_all.py --table-only   # rebuild the table from benchmarks/results/*.json
-    python benchmarks/run_all.py --only horizon_speed,fit_speed   # a subset, then the table
+    python benchmarks/run_all.py                # every script at full size (long), then the tables
+    python benchmarks/run_all.py --table-only   # rebuild the tables from benchmarks/results/*.json
+    python benchmarks/run_all.py --only horizon_speed,fit_speed   # a subset, then the tables
 
 The scripts are the `benchmarks/*.py` not starting with `_` (this one excepted), so new scripts are
 included without registering them. Each writes its headline rows with `_results.write_results` to
-results/NAME.json; the table between the `summary:begin/end` markers of RESULTS.md gets one row
-per result row, matched by (issue, target): the measured text and verdict come from the JSON, and
-table rows no script writes are kept as they are (their verdict and notes included).
+results/NAME.json; each area's table in RESULTS.md (between its `<!-- table:AREA -->` and
+`<!-- /table:AREA -->` markers) is rebuilt from every row of that area: target, figure, status, CPU,
+date and command all come from the JSON, so every row of the tables has a script that remakes it.
 """
 
 from __future__ import annotations
@@ -31,11 +31,12 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from _results import AREAS
+
 HERE = Path(__file__).resolve().parent
 RESULTS_MD = HERE / "RESULTS.md"
 RESULTS_DIR = HERE / "results"
-BEGIN, END = "<!-- summary:begin -->", "<!-- summary:end -->"
-HEADER = ["issue", "target", "measured", "status", "notes"]
+HEADER = ["target", "figure", "status", "CPU", "date (UTC)", "command"]
 
 
 # The longest --quick runs (CPU seconds, empty compile cache, two at once, 2026-11-24 02:40: em_pyramid 24,
@@ -101,48 +102,32 @@ def run_script(path: Path, quick: bool, timeout: float | None, results_dir: Path
     return path.name, code, time.perf_counter() - start, usage.ru_utime + usage.ru_stime, tail
 
 
-def _split_row(line: str) -> list[str]:
-    cells, cur, escaped = [], "", False
-    for ch in line.strip()[1:-1]:
-        if ch == "|" and not escaped:
-            cells.append(cur.strip())
-            cur = ""
-        else:
-            cur += ch
-        escaped = ch == "\\"
-    return cells + [cur.strip()]
-
-
 def _cell(text: str) -> str:
     return " ".join(str(text).split()).replace("|", "\\|")
 
 
-def summary_table(old_rows: list[list[str]], results: list[dict]) -> list[str]:
-    """The new table: old rows in their order, updated from `results` where (issue, target)
-    match; result rows with no old row appended."""
-    rows = [r + [""] * (len(HEADER) - len(r)) for r in old_rows]
-    index = {(r[0], r[1]): i for i, r in enumerate(rows)}
+def markers(area: str) -> tuple[str, str]:
+    return f"<!-- table:{area} -->", f"<!-- /table:{area} -->"
+
+
+def area_tables(results: list[dict]) -> dict[str, list[str]]:
+    """Markdown table lines per area, one row per result row, in the order of the result files."""
+    rows: dict[str, list[str]] = {}
     for rec in results:
         for res in rec["rows"]:
             run = {**rec, **res.get("run", {})}  # a row rerun alone (a script's --sections) carries its own run
             load = run.get("load_average_1_5_15", [float("nan")])[0]
-            cpu = run.get("cpu", "CPU not recorded")
-            measured = f"{res['measured']} [{run['date_utc']} UTC, {cpu}, load {load:.1f}, `{run['command']}`]"
-            cells = [res["issue"], res["target"], measured, res["status"], res.get("notes", "")]
-            key = (_cell(res["issue"]), _cell(res["target"]))
-            if key in index:
-                old = rows[index[key]]
-                rows[index[key]] = [_cell(c) for c in cells[:4]] + [_cell(cells[4]) or old[4]]
-            else:
-                index[key] = len(rows)
-                rows.append([_cell(c) for c in cells])
-    lines = ["| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
-    return lines + ["| " + " | ".join(r) + " |" for r in rows]
+            figure = res["measured"] + (f" ({res['notes']})" if res.get("notes") else "")
+            cells = [res["target"], figure, res["status"], f"{run.get('cpu', 'not recorded')}, load {load:.1f}",
+                     run["date_utc"], f"`{run['command']}`"]
+            rows.setdefault(res["area"], []).append("| " + " | ".join(_cell(c) for c in cells) + " |")
+    head = ["| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
+    return {area: head + lines for area, lines in rows.items()}
 
 
 def check_results(directory: Path) -> list[str]:
     """Problems with the result files a --quick run wrote into `directory` (each must load, name its script and
-    carry rows with issue, target, measured and status), and the summary table must build from them."""
+    carry rows with a known area, target, measured and status), and the tables must build from them."""
     problems, records = [], []
     for path in sorted(directory.glob("*.json")):
         try:
@@ -150,35 +135,38 @@ def check_results(directory: Path) -> list[str]:
             assert (HERE.parent / rec["script"]).is_file(), f"script {rec['script']!r} not found"
             assert rec["rows"], "no rows"
             for row in rec["rows"]:
-                missing = [k for k in ("issue", "target", "measured", "status") if not row.get(k)]
+                missing = [k for k in ("area", "target", "measured", "status") if not row.get(k)]
                 assert not missing, f"a row lacks {missing}"
+                assert row["area"] in AREAS, f"unknown area {row['area']!r}"
             records.append(rec)
         except (ValueError, KeyError, AssertionError) as err:
             problems.append(f"{path.name}: {err}")
-    table = summary_table([], records)
-    if len(table) != 2 + len({(_cell(r["issue"]), _cell(r["target"])) for rec in records for r in rec["rows"]}):
-        problems.append("the summary table does not have one row per result row")
+    tables = area_tables(records)
+    if sum(len(t) - 2 for t in tables.values()) != sum(len(rec["rows"]) for rec in records):
+        problems.append("the tables do not have one row per result row")
     return problems
 
 
-def rebuild_table() -> None:
+def rebuild_tables() -> None:
+    """Replace each area's table in RESULTS.md by the one built from results/*.json."""
     text = RESULTS_MD.read_text()
-    if BEGIN not in text or END not in text:
-        raise SystemExit(f"{RESULTS_MD}: no {BEGIN} ... {END} markers around the summary table")
-    head, rest = text.split(BEGIN, 1)
-    body, tail = rest.split(END, 1)
-    old = [_split_row(ln) for ln in body.splitlines() if ln.startswith("|") and not ln.startswith("|---")]
-    old = [r for r in old if [c.lower() for c in r[:2]] != ["issue", "target"]]
     results = [json.loads(p.read_text()) for p in sorted(RESULTS_DIR.glob("*.json"))]
-    table = summary_table(old, results)
-    RESULTS_MD.write_text(head + BEGIN + "\n" + "\n".join(table) + "\n" + END + tail)
-    print(f"{RESULTS_MD}: summary table rebuilt from {len(results)} result files")
+    tables = area_tables(results)
+    for area in AREAS:
+        begin, end = markers(area)
+        if begin not in text or end not in text:
+            raise SystemExit(f"{RESULTS_MD}: no {begin} ... {end} markers for the {area} table")
+        head, rest = text.split(begin, 1)
+        tail = rest.split(end, 1)[1]
+        text = head + begin + "\n" + "\n".join(tables.get(area, ["(no results yet)"])) + "\n" + end + tail
+    RESULTS_MD.write_text(text)
+    print(f"{RESULTS_MD}: tables rebuilt from {len(results)} result files")
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smoke run: every script with --quick, nothing written")
-    parser.add_argument("--table-only", action="store_true", help="only rebuild the summary table")
+    parser.add_argument("--table-only", action="store_true", help="only rebuild the tables")
     parser.add_argument("--only", default=None, help="comma-separated script names (without .py)")
     parser.add_argument("--jobs", type=int, default=2 if "--quick" in (argv or sys.argv) else 1,
                         help="scripts at once (default 2 with --quick, else 1 so timings do not compete)")
@@ -189,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="--quick: where the scripts write their result rows (default: a temporary directory)")
     args = parser.parse_args(argv)
     if args.table_only:
-        rebuild_table()
+        rebuild_tables()
         return 0
     todo = scripts()
     if args.only:
@@ -231,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
                   "neither RESULTS.md nor results/)", file=sys.stderr)
             return 1
     elif not failed or args.only:
-        rebuild_table()
+        rebuild_tables()
     return 1 if failed else 0
 
 

@@ -1,4 +1,4 @@
-"""Light shafts in fog with a density grid (issue 24): agreement with Mitsuba 3, frame time against
+"""Light shafts in fog with a density grid: agreement with Mitsuba 3, frame time against
 uniform fog, gradient time, speed at equal error against Mitsuba, and sample counts chosen from
 an error target (predicted against achieved).
 
@@ -149,7 +149,7 @@ def agreement(args, base: Path) -> list[dict]:
     start = time.perf_counter()
     results, variant = mitsuba_jobs([(scene_dict, str(base), spp, 500 + k) for k in range(seeds)], args.quick)
     if results is None:
-        return [dict(issue="24 fog grids", target=AGREEMENT_TARGET, measured=variant, status="not measured")]
+        return [dict(area="shafts", target=AGREEMENT_TARGET, measured=variant, status="not measured")]
     reps = np.stack([out[0] for out in results])
     mi_s = time.perf_counter() - start
     mean, var_of_mean = reps.mean(axis=0), reps.var(axis=0, ddof=1) / seeds
@@ -173,7 +173,7 @@ def agreement(args, base: Path) -> list[dict]:
     print(C.table(["ours", "size", "Mitsuba seeds x spp", "rel. RMS of block means", "Mitsuba's own noise",
                    "limit (max of 2 %, 2 x noise)", "status"], rows))
     worst = max(e for _, e in out)
-    return [dict(issue="24 fog grids", target=AGREEMENT_TARGET,
+    return [dict(area="shafts", target=AGREEMENT_TARGET,
                  measured=f"float32 {100 * out[0][1]:.2f} %, float64 {100 * out[1][1]:.2f} % (Mitsuba's noise "
                           f"{100 * noise:.2f} %, {seeds} x {spp} spp, {w} x {h}, {variant})",
                  status="met" if worst <= limit else "missed", figures={"float32": out[0][1], "float64": out[1][1],
@@ -243,7 +243,7 @@ def frames(args, base: Path) -> list[dict]:
     print(C.table(["fog", "wall s", "CPU s", "compile + first s"],
                   [[k, f"{v[0]:.3f}", f"{v[1]:.3f}", f"{v[2]:.1f}"] for k, v in times.items()]))
     print(f"grid / uniform: {ratio_wall:.2f}x wall, {ratio_cpu:.2f}x CPU")
-    rows = [dict(issue="24 fog grids", target="720x480 grid frame <= 3x the same scene's uniform frame (one run)",
+    rows = [dict(area="shafts", target="720x480 grid frame <= 3x the same scene's uniform frame (one run)",
                  measured=f"{ratio_wall:.2f}x wall, {ratio_cpu:.2f}x CPU (grid {times['grid'][0]:.3f} s, uniform "
                           f"{times['uniform'][0]:.3f} s wall; {w} x {h})",
                  status="met" if ratio_wall <= 3 else "missed", figures={"ratio_wall": ratio_wall,
@@ -263,7 +263,7 @@ def frames(args, base: Path) -> list[dict]:
                  f"(ratio {med['wall'] / bmed['wall']:.3f} wall, {med['cpu'] / bmed['cpu']:.3f} CPU)")
         status = "met" if med["cpu"] <= 1.05 * bmed["cpu"] else "missed"
     print(f"one-textured-spot uniform frame ({spot_w} x {spot_h}, 32 samples): {text}")
-    rows.append(dict(issue="24 fog grids", target="one-textured-spot uniform frame no slower than before the change",
+    rows.append(dict(area="shafts", target="one-textured-spot uniform frame no slower than before the change",
                      measured=text + " (medians of 3 interleaved runs)", status=status))
     return rows
 
@@ -308,7 +308,7 @@ def gradient(args, base: Path) -> list[dict]:
     print(C.table(["w.r.t.", "forward s", "value and gradient s", "ratio wall", "ratio CPU", "compile s"], rows))
     full = out["every grid value, rho, kappa, K, the lights"]
     grid_only = out["the grid values"]
-    return [dict(issue="24 fog grids", target="gradient of an image loss <= 5x the forward time",
+    return [dict(area="shafts", target="gradient of an image loss <= 5x the forward time",
                  measured=f"w.r.t. every grid value, rho, kappa, K and the lights: {full[0]:.2f}x wall, {full[1]:.2f}x "
                           f"CPU; w.r.t. the grid values: {grid_only[0]:.2f}x wall, {grid_only[1]:.2f}x CPU ({w} x {h})",
                  status="met" if full[0] <= 5 else ("missed (met for the grid values)" if grid_only[0] <= 5
@@ -348,7 +348,7 @@ def mitsuba_speed(args, base: Path) -> list[dict]:
     jobs.append((scene_dict, str(base), spps[-1], 3, True))
     results, variant = mitsuba_jobs(jobs, args.quick)
     if results is None:
-        return [dict(issue="24 fog grids", target=SPEED_TARGET, measured=variant, status="not measured")]
+        return [dict(area="shafts", target=SPEED_TARGET, measured=variant, status="not measured")]
     results = results[1:]
     mi = []
     for i, spp in enumerate(spps[:-1]):
@@ -368,12 +368,12 @@ def mitsuba_speed(args, base: Path) -> list[dict]:
                   + [[variant, f"{s} spp", f"{100 * e:.2f} %", f"{t:.1f}", f"{c:.1f}"]
                      for s, e, t, c in mi]))
     if best is None:
-        return [dict(issue="24 fog grids", target=SPEED_TARGET, measured="no sample count of ours reached 2 %",
+        return [dict(area="shafts", target=SPEED_TARGET, measured="no sample count of ours reached 2 %",
                      status="missed")]
     ratio, ratio_cpu = t_2 / best[2], c_2 / best[3]
     print(f"Mitsuba to 2 %: {t_2:.0f} s wall, {c_2:.0f} s CPU ({factor:.1f}x its {spp_max}-spp run); ours {best[0]} "
           f"samples {best[2]:.3f} s wall, {best[3]:.3f} s CPU -> {ratio:.0f}x wall, {ratio_cpu:.0f}x CPU")
-    return [dict(issue="24 fog grids", target=SPEED_TARGET,
+    return [dict(area="shafts", target=SPEED_TARGET,
                  measured=f"{ratio:.0f}x wall, {ratio_cpu:.0f}x CPU: {variant}, {spp_max} spp "
                           f"{100 * e_max:.2f} % in {t_max:.0f} s -> 2 % at {t_2:.0f} s ({factor:.1f}x what ran); "
                           f"ours {best[0]} samples {100 * best[1]:.2f} % in {best[2]:.3f} s ({w} x {h})",
@@ -457,7 +457,7 @@ def error_report(args, base: Path) -> list[dict]:
                    f"fastest of {HAND_PICKED} reaching 2 %", f"smallest of {counts[0]}..{counts[-1]} reaching 2 %",
                    "estimate s", "chosen frame s", "hand-picked frame s", "(estimate + chosen) / hand-picked",
                    "... / smallest count"], rows))
-    return [dict(issue="24 fog grids", target="--error 0.02: <= 2.5 % on every scene, <= 1.5x the cheapest hand-picked "
+    return [dict(area="shafts", target="--error 0.02: <= 2.5 % on every scene, <= 1.5x the cheapest hand-picked "
                                               "setting reaching 2 %",
                  measured=f"worst achieved {100 * worst:.2f} %, slowest {slowest:.2f}x against the fastest of "
                           f"{HAND_PICKED} reaching 2 % ({slowest_any:.2f}x against the smallest count of all "
@@ -492,7 +492,7 @@ def main(argv=None) -> int:
     if rows:  # (the quick run's grid frame has no row)
         write_results("shafts_fog", rows, quick=args.quick, update=set(names) != set(SECTIONS))
     for row in rows:
-        print(f"| {row['issue']} | {row['target']} | {row['measured']} | {row['status']} |")
+        print(f"| {row['area']} | {row['target']} | {row['measured']} | {row['status']} |")
     return 0
 
 

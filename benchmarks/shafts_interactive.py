@@ -1,4 +1,4 @@
-"""Light shafts at interactive rates (issue 13): the equiangular method against the ray march and
+"""Light shafts at interactive rates: the equiangular method against the ray march and
 the sample planes, each at settings around 2 % error, whole frames (shadow maps and surfaces
 included), float32, compile time apart.
 
@@ -200,7 +200,7 @@ def stage_ratio_row(eq, rm):
         text = f"{ratio:.2f}x wall, {rm['cpu_s'] / eq['cpu_s']:.2f}x CPU (ray march {rm['setting']})"
     else:
         ratio, text = 0.0, "no ratio: a method reached 2 % at none of its settings"
-    return dict(issue="13 light shafts", target=">= 17x the ray march at 2 % on the stage", measured=text,
+    return dict(area="shafts", target=">= 17x the ray march at 2 % on the stage", measured=text,
                 status="met" if ratio >= 17 else "missed")
 
 
@@ -320,17 +320,17 @@ def main(argv=None) -> int:
         best = summary[(name, "equiangular")]
         if best is None:  # a row all the same: "no setting reached 2 %" is a result too
             lowest = min(r["err"] for r in rows if r["scene"] == name and r["method"] == "equiangular")
-            results.append(dict(issue="13 light shafts", target=target, status="missed",
+            results.append(dict(area="shafts", target=target, status="missed",
                                 measured=f"no equiangular setting reached 2 % (lowest {100 * lowest:.2f} %)"))
             continue
-        results.append(dict(issue="13 light shafts", target=target,
+        results.append(dict(area="shafts", target=target,
                             measured=f"{best['median_s']:.3f} s wall, {best['cpu_s']:.3f} s CPU "
                                      f"({best['setting']}, {100 * best['err']:.2f} %)",
                             status=verdict(best["median_s"] <= limit)))
     if "stage" in scenes:
         results.append(stage_ratio_row(summary[("stage", "equiangular")], summary[("stage", "raymarch")]))
     if grad:
-        results.append(dict(issue="13 light shafts", target="gradient <= 4x forward",
+        results.append(dict(area="shafts", target="gradient <= 4x forward",
                             measured=f"{grad['ratio_wall']:.2f}x wall, {grad['ratio_cpu']:.2f}x CPU (spot scene)",
                             status=verdict(grad["ratio_wall"] <= 4)))
     write_results("shafts_interactive", results, quick=args.quick)

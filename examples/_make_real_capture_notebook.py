@@ -6,7 +6,7 @@ import nbformat as nbf
 from _notebook import write_notebook
 
 cells = [
-    nbf.v4.new_markdown_cell("""# Fitting a real capture: a DiLiGenT object (issue 23)
+    nbf.v4.new_markdown_cell("""# Fitting a real capture: a DiLiGenT object
 
 A measured multi-light capture, not a render: the *cat* of the DiLiGenT photometric-stereo
 benchmark (Shi et al., CVPR 2016 / TPAMI 2019; research use), 96 calibrated LEDs, 16-bit linear

@@ -146,7 +146,10 @@ class Capture:
         """`H W` bool: the texels to fit (all when the capture has no mask)."""
         if self.mask is None:
             return np.ones(self.size, bool)
-        return np.any(read_image(self.mask, srgb=False)[..., :3] > 0, axis=-1)
+        mask = np.any(read_image(self.mask, srgb=False)[..., :3] > 0, axis=-1)
+        if not mask.any():
+            raise CaptureError([f"{self.mask}: no texel is on the object (the mask is all zero): nothing to fit"])
+        return mask
 
     def read_codes(self, path: str | os.PathLike) -> np.ndarray:
         """One image as float32 `H W 3`: integer codes / full scale (not linearised: saturation is
@@ -422,7 +425,7 @@ def load_capture(capture_dir: str | os.PathLike, *, check_pixels: bool = True, h
         dirs, names, intensities, exr = _lights(doc, None if exposures is None else len(exposures), root, images)
     finally:
         images.close()
-    if not white_fields.valid and intensities is None and doc.has("lights"):
+    if not white_fields.valid and intensities is None and len(names) > 0:   # (no lights: noted above)
         doc.problem("white", "missing (a capture needs a white board unless every light carries an intensity)")
     exr |= {name.lower().endswith(".exr") for name in white_names or ()}
     if len(exr) > 1:

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxrender.io import InputError, Problems, atomic_path, image_header
+from jaxrender.io import InputError, Problems, atomic_path, image_header, output_file, read_image
 
 from .capture import CAPTURE_FORMAT, CAPTURE_VERSION, UNIT_TOLERANCE, CaptureError
 from .hdr import RESPONSES
@@ -80,7 +80,8 @@ def _relative(path: Path, out: Path) -> str:
     return rel if not rel.startswith(os.path.join("..", "..", "..")) else str(path.resolve())
 
 
-def _write(out: Path, manifest: dict) -> Path:
+def _write(out: Path, manifest: dict, inputs: list[Path]) -> Path:
+    output_file(out, inputs=inputs, make_folder=True)   # never over one of the files it describes
     with atomic_path(out) as tmp:
         tmp.write_text(json.dumps(manifest, indent=1) + "\n")
     return out
@@ -235,7 +236,7 @@ def write_manifest(csv_path: str | os.PathLike, out: str | os.PathLike, *, respo
     `white_reflectance`: the board's reflectance (a number or RGB); `view`: (theta_deg, phi_deg)
     of the camera. Returns `out`; raises `CaptureError` with one line per problem (module docstring).
     """
-    csv_path, out = Path(csv_path), Path(out)
+    csv_path, out = Path(csv_path), output_file(out, make_folder=True)
     problems = Problems(error=CaptureError)
     _check_options(response, white_reflectance, view, problems)
     rows = _read_csv(csv_path, problems)
@@ -263,7 +264,8 @@ def write_manifest(csv_path: str | os.PathLike, out: str | os.PathLike, *, respo
         manifest["white"] = {"reflectance": float(refl[0]) if len(refl) == 1 else [float(r) for r in refl],
                              "images": ordered(groups[("white",)])}
     manifest["lights"] = [light(key, images) for key, images in groups.items() if key[0] != "white"]
-    return _write(out, manifest)
+    read = [csv_path] + [base / name for images in groups.values() for _, _, name, _ in images]
+    return _write(out, manifest, read)
 
 
 def _table(path: Path, columns: int, problems: Problems) -> list[list[float] | None] | None:
@@ -341,7 +343,7 @@ def write_folder_manifest(folder: str | os.PathLike, out: str | os.PathLike) -> 
     docstring); the images stay in place. Returns `out`; raises `CaptureError` with one line per
     problem (missing files, row counts that differ, non-unit or downward directions, non-positive
     intensities, missing images or images of another size), nothing written then."""
-    folder, out = Path(folder), Path(out)
+    folder, out = Path(folder), output_file(out, make_folder=True)
     problems = Problems(error=CaptureError)
     if not folder.is_dir():
         raise CaptureError([f"{folder}: no such folder"])
@@ -352,6 +354,8 @@ def write_folder_manifest(folder: str | os.PathLike, out: str | os.PathLike) -> 
         try:
             if image_header(mask).size != size:
                 problems.add(f"{mask}: size differs from the images' {size[0]}x{size[1]}")
+            elif not np.any(read_image(mask, srgb=False)):
+                problems.add(f"{mask}: no pixel is on the object (the mask is all zero)")
         except InputError as error:
             problems.add(str(error))
     problems.check()
@@ -366,4 +370,5 @@ def write_folder_manifest(folder: str | os.PathLike, out: str | os.PathLike) -> 
                            for d, inten, name in zip(units, intensities, names)]}
     if mask.is_file():
         manifest["mask"] = _relative(mask, out)
-    return _write(out, manifest)
+    read = [folder / name for name in (*FOLDER_FILES, "mask.png", "Normal_gt.mat", *names)]
+    return _write(out, manifest, read)

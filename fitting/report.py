@@ -145,13 +145,18 @@ def fit_report(capture_dir: str | os.PathLike, btf_dir: str | os.PathLike, *, ou
     import matplotlib.pyplot as plt
 
     capture = load_capture(capture_dir)
+    if holdout is not None and not 2 <= holdout <= capture.n_lights:
+        raise InputError(capture_dir, f"--holdout {holdout}: hold out every k-th light with 2 <= k <= "
+                                      f"{capture.n_lights} (the capture's lights)")
+    gt = None if normals is None else read_normal_map(normals, capture.size)
+    if gt is not None and not np.any(capture.read_mask() & (np.linalg.norm(gt, axis=-1) > 0)):
+        raise InputError(normals, "no non-zero normal inside the capture's mask: nothing to compare")
     texels, model = load_btf_texels(btf_dir)
     if obs is None:
         obs = merge_capture(capture, progress=False)
     if tuple(texels.rho_d.shape[:2]) != tuple(obs.size):
         raise InputError(Path(btf_dir) / "level_00.exr",
                          f"size {list(texels.rho_d.shape[:2])} differs from the capture's {list(obs.size)}")
-    gt = None if normals is None else read_normal_map(normals, obs.size)
     _, levels = read_btf(btf_dir)
     level0 = levels[0]
     inside = capture.read_mask() & (level0["mask"] > 0)

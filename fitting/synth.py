@@ -26,7 +26,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from jaxrender.brdf import MODELS, BTFTexel, reflectance
-from jaxrender.io import InputError, atomic_path, linear_to_srgb, write_btf, write_exr, write_png
+from jaxrender.io import InputError, atomic_path, linear_to_srgb, output_folder, write_btf, write_exr, write_png
 from jaxrender.maths import default_float
 
 from .capture import direction_from_angles
@@ -353,9 +353,9 @@ def synth_capture(out_dir: str | os.PathLike, *, key: PRNGKeyArray, size: tuple[
                   workers: int = 8, progress: bool | None = None) -> Path:
     """Write a synthetic capture directory (design.md format) and its true maps in `OUT_DIR/truth/`.
 
-    Everything is written into a temporary sibling directory that is renamed onto `out_dir` at the
-    end (capture.json written last inside it), so an interrupted run leaves nothing that looks
-    complete. An existing `out_dir` is replaced only if it is empty or a previous capture.
+    Everything is written into a staging folder and moved into `out_dir` at the end
+    (`jaxrender.io.output_folder`), so an interrupted run leaves nothing that looks complete; an
+    existing `out_dir` keeps its other files.
     `lights`: "all" (the paper's 2160) or a number (a stratified subset chosen by `key`).
 
     The same observations without the disk: with `k_maps, k_lights, k_sel = jax.random.split(key, 3)`,
@@ -366,9 +366,8 @@ def synth_capture(out_dir: str | os.PathLike, *, key: PRNGKeyArray, size: tuple[
     from tqdm.auto import tqdm
 
     out_dir = Path(out_dir)
-    if out_dir.exists() and (not out_dir.is_dir()
-                             or (any(out_dir.iterdir()) and not (out_dir / "capture.json").is_file())):
-        raise InputError(out_dir, "exists and is not an empty directory or a previous capture; choose a new one")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(out_dir, "exists and is not a folder")
     if image_format not in ("png", "exr"):
         raise InputError(None, f"unknown image format {image_format!r} (png or exr)")
     if model not in MODELS:
@@ -403,7 +402,7 @@ def synth_capture(out_dir: str | os.PathLike, *, key: PRNGKeyArray, size: tuple[
 
     n = len(ids)
     batch = max(1, min(batch, n))
-    with atomic_path(out_dir, directory=True) as tmp:
+    with output_folder(out_dir) as tmp:
         images = tmp / "images"
         images.mkdir()
         white = synth_white_codes(k_white, refl_rgb, exposures, size=tuple(size), sensor=sensor)

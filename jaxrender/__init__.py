@@ -7,4 +7,4 @@ the showcase scenes, gallery and command lines are the orchestration layer `jaxr
 (`jaxrender.app.scenes.load_shafts_scene`, ...), which `import jaxrender` does not load.
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

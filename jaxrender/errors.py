@@ -40,6 +40,21 @@ class InputErrors(InputError):
         super().__init__(None, "\n".join(self.problems))
 
 
+class NonFiniteOutput(Exception):
+    """A command was about to write NaN or infinite values: a bug (exit code 1), nothing written.
+
+    Inputs that cannot be represented are refused as `InputError`s before the work starts; a
+    non-finite value that still appears is the toolkit's fault, reported as such.
+    """
+
+    def __init__(self, path: str | os.PathLike | None, problem: str):
+        self.path, self.problem = (None if path is None else os.fspath(path)), problem
+        super().__init__(problem if path is None else f"{self.path}: {problem}")
+
+    def __reduce__(self):
+        return (_rebuild, (type(self), self.args, self.__dict__))
+
+
 class OutputBusy(Exception):
     """Another live process is writing this output (its lock file names it): exit code 4."""
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxrender.io import InputError, atomic_path, read_exr, write_exr
+from jaxrender.io import FLOAT32_MAX, InputError, atomic_path, check_finite, read_exr, write_exr
 
 FIELD_SUFFIXES = (".npy", ".exr")
 
@@ -47,6 +47,9 @@ def load_field(path: str | os.PathLike) -> np.ndarray:
         raise InputError(path, f"height field must be at least 3x3, got {field.shape}")
     if not np.all(np.isfinite(field)):
         raise InputError(path, "height field contains NaN or infinity")
+    if np.any(np.abs(field) > FLOAT32_MAX):
+        raise InputError(path, f"height field has values beyond float32's range (|x| <= {FLOAT32_MAX:.4g}), in which "
+                               "the automata compute")
     return field.astype(np.float32)
 
 
@@ -57,6 +60,7 @@ def save_field(path: str | os.PathLike, field) -> Path:
     if suffix not in FIELD_SUFFIXES:
         raise InputError(path, f"output must end in .npy or .exr, not {suffix or 'no suffix'}")
     field = np.asarray(field, dtype=np.float32)
+    check_finite(field, path)
     if suffix == ".exr":
         return write_exr(path, {"height": field})
     with atomic_path(path) as tmp:

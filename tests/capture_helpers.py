@@ -7,6 +7,9 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+import OpenEXR
+
 
 def write_capture(root: Path, image: Callable[[str], str], *, size: tuple[int, int], ext: str, lights: int,
                   exposures_s: list[float], angle_step: tuple[float, float], response: str = "linear") -> Path:
@@ -21,3 +24,13 @@ def write_capture(root: Path, image: Callable[[str], str], *, size: tuple[int, i
                             "images": [image(f"images/l{i}_e{e}.{ext}") for e in exposures]} for i in range(lights)]}
     (root / "capture.json").write_text(json.dumps(manifest))
     return root
+
+
+def write_foreign_exr(path: Path, image) -> Path:
+    """An RGB EXR as another program may write it, NaN and infinities included (the toolkit's own
+    `write_exr` refuses values that are not finite): the readers must refuse it."""
+    image = np.asarray(image, np.float32)
+    channels = {c: np.ascontiguousarray(image[..., i]) for i, c in enumerate("RGB")}
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels) as exr:
+        exr.write(str(path))
+    return Path(path)

@@ -28,7 +28,7 @@ Mitsuba 3 scene that design.md declares equivalent:
   its centre: compare against a supersampled render, or block means);
 - `independent` sampler (independent samples make per-pixel variance estimates honest).
 
-Fog with a density grid (`medium.density`, issue 24): a `heterogeneous` medium whose `sigma_t` is
+Fog with a density grid (`medium.density`): a `heterogeneous` medium whose `sigma_t` is
 a `gridvolume` of the grid (trilinear, wrap_mode clamp; its data (nz, ny, nx) is Mitsuba's
 (z, y, x) layout, x fastest, and its unit cube is mapped onto [box_min, box_max] by `to_world` =
 translate(box_min) scale(box_max - box_min), voxel centres at (i + 1/2)/n as in our DensityGrid:

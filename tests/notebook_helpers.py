@@ -40,3 +40,38 @@ def last_results(nb: nbformat.NotebookNode) -> dict:
     """The JSON on the last line the last cell printed."""
     text = "".join(o.get("text", "") for o in nb.cells[-1].outputs if o.get("output_type") == "stream")
     return json.loads(text.strip().splitlines()[-1])
+
+
+def _numbers_match(stored, fresh, *, rtol: float, path: str = "") -> list[str]:
+    """Where two printed results differ: numbers beyond `rtol` (relative, 1e-9 absolute), anything else unequal."""
+    if isinstance(stored, dict) and isinstance(fresh, dict):
+        if set(stored) != set(fresh):
+            return [f"{path}: keys {sorted(set(stored) ^ set(fresh))} differ"]
+        return [d for k in stored for d in _numbers_match(stored[k], fresh[k], rtol=rtol, path=f"{path}.{k}")]
+    if isinstance(stored, list) and isinstance(fresh, list) and len(stored) == len(fresh):
+        return [d for i, (a, b) in enumerate(zip(stored, fresh)) for d in _numbers_match(a, b, rtol=rtol,
+                                                                                         path=f"{path}[{i}]")]
+    numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (stored, fresh))
+    if numbers and abs(stored - fresh) <= rtol * max(abs(stored), abs(fresh)) + 1e-9:
+        return []
+    return [] if stored == fresh else [f"{path}: stored {stored!r}, now {fresh!r}"]
+
+
+def assert_outputs_current(path: Path, executed: nbformat.NotebookNode, results, *, rtol: float = 0.02) -> None:
+    """The notebook stored at `path` carries outputs computed from its current code: every code cell
+    ran, its recorded hash is that of the code now (examples/run_notebooks.py), and the results it
+    printed (`results(nb)`: `tagged_results` or `last_results`) are those of the fresh run `executed`,
+    numbers within `rtol` (other CPUs, other summation orders)."""
+    import sys
+
+    sys.path.insert(0, str(path.parent))
+    from run_notebooks import code_sha256
+
+    stored = nbformat.read(path, as_version=4)
+    recorded = stored.metadata.get("jaxrender", {}).get("code_sha256")
+    assert recorded == code_sha256(stored) == code_sha256(executed), (
+        f"{path.name}: its stored outputs are not from its current code: run `python examples/run_notebooks.py "
+        f"{path.stem}`")
+    assert all(c.get("execution_count") for c in stored.cells if c.cell_type == "code"), f"{path.name}: not run"
+    differences = _numbers_match(results(stored), results(executed), rtol=rtol)
+    assert not differences, f"{path.name}: stored outputs differ from a fresh run: {differences[:5]}"

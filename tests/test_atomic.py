@@ -37,14 +37,3 @@ def test_failure_keeps_the_old_file_and_removes_the_temporary(tmp_path):
         raise RuntimeError("writer failed")
     assert out.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["maps.exr"]
-
-
-def test_directory_replaces_the_old_one_with_the_umask_mode(tmp_path, umask_022):
-    out = tmp_path / "store"
-    out.mkdir()
-    (out / "stale").write_text("x")
-    with atomic_path(out, directory=True) as tmp:
-        (tmp / "new").write_text("y")
-    assert sorted(p.name for p in out.iterdir()) == ["new"]
-    assert _mode(out) == 0o755
-    assert [p.name for p in tmp_path.iterdir()] == ["store"]

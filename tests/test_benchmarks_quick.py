@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 # Not a speed claim (no timed asserts): CI's budget for the smoke run is 3 minutes; this only stops a hang,
 # with room for a loaded machine (the run took 294 s inside a parallel pytest run before the --quick cuts).
@@ -35,34 +37,41 @@ def test_run_all_quick_runs_every_script_and_writes_nothing(tmp_path):
     assert run_all.check_results(rows_dir) == []  # each loads, has complete rows, and the table builds from them
 
 
-def test_summary_table_keeps_rows_and_takes_measured_figures(tmp_path, monkeypatch):
+def test_area_tables_rebuilt_from_the_result_rows(tmp_path, monkeypatch):
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import run_all
 
     md = tmp_path / "RESULTS.md"
-    md.write_text("# x\n\n" + run_all.BEGIN + "\n| issue | target | measured | status |\n|---|---|---|---|\n"
-                  "| 1 a | kept row | 3 s | met |\n| 2 b | updated row | old | met |\n" + run_all.END + "\n\nrest\n")
+    begin_end = {area: run_all.markers(area) for area in run_all.AREAS}
+    sections = "".join(f"## {area}\n\n{begin}\n| old | row |\n{end}\n\nhow {area}\n\n"
+                       for area, (begin, end) in begin_end.items())
+    md.write_text("# x\n\n" + sections + "rest\n")
     results = tmp_path / "results"
     results.mkdir()
-    rec = {"date_utc": "2026-11-23 21:00", "command": "python benchmarks/x.py", "load_average_1_5_15": [3.0, 2, 1],
+    rec = {"script": "benchmarks/run_all.py", "date_utc": "2026-11-23 21:00", "command": "python benchmarks/x.py",
+           "load_average_1_5_15": [3.0, 2, 1],
            "cpu": "AMD EPYC 9B14 (AVX-512)",
-           "rows": [{"issue": "2 b", "target": "updated row", "measured": "1.5x", "status": "missed"},
-                    {"issue": "3 c", "target": "new row", "measured": "2x", "status": "met", "notes": "n"},
+           "rows": [{"area": "desert", "target": "a row", "measured": "1.5x", "status": "missed"},
+                    {"area": "shafts", "target": "with notes", "measured": "2x", "status": "met", "notes": "n|m"},
                     # a row rerun alone (write_results(update=True)) carries its own run
-                    {"issue": "3 c", "target": "rerun row", "measured": "3x", "status": "met",
+                    {"area": "desert", "target": "rerun row", "measured": "3x", "status": "met",
                      "run": {"date_utc": "2026-11-24 01:00", "command": "python benchmarks/x.py --sections y",
                              "load_average_1_5_15": [1.0, 1, 1], "cpu": "Intel Xeon (AVX-512)"}}]}
     (results / "x.json").write_text(json.dumps(rec))
     monkeypatch.setattr(run_all, "RESULTS_MD", md)
     monkeypatch.setattr(run_all, "RESULTS_DIR", results)
-    run_all.rebuild_table()
+    run_all.rebuild_tables()
     text = md.read_text()
-    assert "| 1 a | kept row | 3 s | met |  |" in text
-    assert ("| 2 b | updated row | 1.5x [2026-11-23 21:00 UTC, AMD EPYC 9B14 (AVX-512), load 3.0, "
-            "`python benchmarks/x.py`] | missed |  |") in text
-    assert "| 3 c | new row | 2x" in text and text.endswith(run_all.END + "\n\nrest\n")
-    assert ("| 3 c | rerun row | 3x [2026-11-24 01:00 UTC, Intel Xeon (AVX-512), load 1.0, "
-            "`python benchmarks/x.py --sections y`] | met |") in text
+    assert "| old | row |" not in text  # every row comes from a result file
+    desert = text.split("## desert")[1].split("how desert")[0]
+    assert ("| a row | 1.5x | missed | AMD EPYC 9B14 (AVX-512), load 3.0 | 2026-11-23 21:00 | "
+            "`python benchmarks/x.py` |") in desert
+    assert ("| rerun row | 3x | met | Intel Xeon (AVX-512), load 1.0 | 2026-11-24 01:00 | "
+            "`python benchmarks/x.py --sections y` |") in desert
+    assert "| with notes | 2x (n\\|m) | met |" in text.split("## shafts")[1].split("how shafts")[0]
+    assert "(no results yet)" in text.split("## noh")[1].split("how noh")[0]
+    assert text.endswith("how tools\n\nrest\n")
+    assert run_all.check_results(results) == []
 
 
 def test_write_results_update_replaces_only_the_rerun_rows(tmp_path, monkeypatch):
@@ -70,8 +79,10 @@ def test_write_results_update_replaces_only_the_rerun_rows(tmp_path, monkeypatch
     import _results
 
     monkeypatch.setenv("BENCH_RESULTS_DIR", str(tmp_path))
-    rows = [{"issue": "9 x", "target": t, "measured": m, "status": "met"} for t, m in (("a", "1"), ("b", "2"))]
+    rows = [{"area": "desert", "target": t, "measured": m, "status": "met"} for t, m in (("a", "1"), ("b", "2"))]
     _results.write_results("x", rows)
-    _results.write_results("x", [{"issue": "9 x", "target": "b", "measured": "3", "status": "missed"}], update=True)
+    _results.write_results("x", [{"area": "desert", "target": "b", "measured": "3", "status": "missed"}], update=True)
+    with pytest.raises(ValueError, match="area 'nowhere'"):
+        _results.write_results("x", [{"area": "nowhere", "target": "b", "measured": "3", "status": "met"}])
     rec = json.loads((tmp_path / "x.json").read_text())
     assert [(r["target"], r["measured"], "run" in r) for r in rec["rows"]] == [("a", "1", False), ("b", "3", True)]

@@ -174,7 +174,10 @@ def test_built_in_noh_motion_round_trips_and_its_angles_give_its_pose(tmp_path):
     (lambda s: s.replace("OFFSET 5 0 1", "OFFSET 5 zero 1"), 12, "'zero' is not a number"),
     (lambda s: s.replace("CHANNELS 3 Xrotation", "CHANNELS 3 Wrotation"), 13, "unknown channel 'Wrotation'"),
     (lambda s: s.replace("Frames: 3", "Frames: three"), 36, "not a whole number"),
-    (lambda s: s.replace("Frame Time: 0.05", "Frame Time: -1"), 37, "must be > 0"),
+    (lambda s: s.replace("Frame Time: 0.05", "Frame Time: -1"), 37, "must be 1e-06 to 3600 s"),
+    (lambda s: s.replace("Frame Time: 0.05", "Frame Time: 1e-300"), 37, "must be 1e-06 to 3600 s"),
+    (lambda s: s.replace("OFFSET 5 0 1", "OFFSET 5 1e39 1"), 12, "beyond float32"),
+    (lambda s: s.replace("0 95 0 0 0 0 0.5", "0 95 0 0 0 0 1e39"), 40, "beyond float32"),
     (lambda s: s.replace("0 95 0 0 0 0 0.5", "0 95 0 0 0 0.5"), 40, "expected 19 channel values, got 18"),
     (lambda s: s.replace("0 95 0 0 0 0 0.5", "0 95 0 0 x 0 0.5"), 40, "'x' is not a number"),
     (lambda s: s.replace("Frames: 3", "Frames: 4"), 41, "ends after 3 motion lines"),
@@ -210,3 +213,18 @@ def test_euler_zxy_inverts_the_channel_rotation():
     matrices = Rotation.from_euler("ZXY", angles, degrees=True).as_matrix()
     np.testing.assert_allclose(euler_zxy(matrices), angles, atol=1e-9)
     assert math.isclose(float(np.abs(matrices[0] @ matrices[0].T - np.eye(3)).max()), 0.0, abs_tol=1e-12)
+
+
+def test_a_chain_of_any_depth_reads(tmp_path):
+    """1000 joints, each the child of the one before: read without recursion, posed in float64."""
+    n = 1000
+    lines = ["HIERARCHY", "ROOT j0", "{", "OFFSET 0 0 0", "CHANNELS 6 Xposition Yposition Zposition Zrotation "
+             "Xrotation Yrotation"]
+    for i in range(1, n):
+        lines += [f"JOINT j{i}", "{", "OFFSET 0 1 0", "CHANNELS 3 Zrotation Xrotation Yrotation"]
+    lines += ["End Site", "{", "OFFSET 0 1 0", "}"] + ["}"] * n
+    lines += ["MOTION", "Frames: 1", "Frame Time: 0.1", " ".join(["0"] * (6 + 3 * (n - 1)))]
+    path = tmp_path / "chain.bvh"
+    path.write_text("\n".join(lines) + "\n")
+    bvh = read_bvh(path)
+    assert len(bvh.names) == n + 1 and bvh.parents[-1] == n - 1 and bvh.parents[5] == 4

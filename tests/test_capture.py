@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from capture_helpers import write_foreign_exr
 
 from fitting import Capture, CaptureError, load_capture, merge_capture
 from jaxrender.io import InputError, write_exr, write_png
@@ -138,9 +139,9 @@ def test_nan_and_inf_in_exr(tmp_path):
     load_capture(tmp_path)  # valid as written
     bad = np.full(SIZE + (3,), 0.5, np.float32)
     bad[1, 2, 0] = np.nan
-    write_exr(tmp_path / "images/l1_e0.exr", bad)
+    write_foreign_exr(tmp_path / "images/l1_e0.exr", bad)
     bad[0, 0, 1] = np.inf
-    write_exr(tmp_path / "images/white_e2.exr", bad)
+    write_foreign_exr(tmp_path / "images/white_e2.exr", bad)
     lines = problems_of(tmp_path)
     assert sorted(lines) == sorted([f"{tmp_path / 'images/l1_e0.exr'}: 1 non-finite values (NaN)",
                                     f"{tmp_path / 'images/white_e2.exr'}: 2 non-finite values (NaN, Inf)"])

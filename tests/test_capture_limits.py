@@ -1,4 +1,4 @@
-"""A huge broken manifest fails fast with bounded memory (issue 26): 10^5 light entries whose images
+"""A huge broken manifest fails fast with bounded memory: 10^5 light entries whose images
 are missing stop after the first 200 problems, one line each, exit code 2, and the process's peak
 memory stays near that of an empty run (the manifest's own objects, no per-image ones)."""
 

@@ -19,7 +19,7 @@ from jaxrender.shadows import (
 )
 
 EXACT_TOL = 1e-12  # the fast search is exact: only float64 rounding of identical formulas differs
-AGREE_MIN = 0.99  # issue 3: the horizon shadow / incremental march agrees with a brute-force ray on >= 99 %
+AGREE_MIN = 0.99  # the horizon shadow / incremental march agrees with a brute-force ray on >= 99 %
 
 
 def _bilinear_periodic(h, y, x):
@@ -117,7 +117,7 @@ def _horizon_bruteforce_np(h, directions):
     return out
 
 
-AGREE_MIN_8 = 0.94  # issue 15: with the renderer's 8 directions; measured 95.7-100 % over these lights
+AGREE_MIN_8 = 0.94  # with the renderer's 8 directions; measured 95.7-100 % over these lights
 _LIGHTS = [(0.0, 8.0), (160.0, 8.0), (160.0, 12.0), (200.0, 12.0)]  # (azimuth, elevation) in degrees
 
 
@@ -130,7 +130,7 @@ def test_horizon_shadow_agrees_with_bruteforce_ray(directions, agree_min, lights
     the agreement is 95.7-100 % over these lights (measured): the linear interpolation between
     directions 45 deg apart misjudges lights between them (20 deg: 95.7 %, 160 deg: 96.7 %), and
     along a diagonal the lattice path (sampled at lattice points only) differs slightly from the
-    continuous ray; the test asserts >= 94 %. With 16 directions it is >= 99 % (issue 3) for the
+    continuous ray; the test asserts >= 94 %. With 16 directions it is >= 99 % (AGREE_MIN) for the
     first four lights (98.96 % at 20 deg, between two of the 16).
     """
     n = 48

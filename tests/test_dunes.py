@@ -73,7 +73,7 @@ def test_total_sand_conserved(wind_deg):
 
 @pytest.mark.parametrize("hop,wind_deg", [("split", 0.0), ("nearest", 0.0), ("split", 30.0)])
 def test_step_conserves_sand_bit_for_bit_float32(hop, wind_deg):
-    """Issue 15: the dune automaton shares the ripples' transport: in float32, from a field on a
+    """The dune automaton shares the ripples' transport: in float32, from a field on a
     coarse binary grid (2^-10), the first step and every later step whose sand grid did not
     coarsen keep the exact total."""
     h0 = init_dunes(jax.random.key(12), (24, 40), low=1.0, high=3.0, dtype=jnp.float32)

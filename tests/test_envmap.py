@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.stats
+from capture_helpers import write_foreign_exr
 
 from jaxrender.io import InputError, write_exr
 from jaxrender.lights import EnvMap, env_pdf, env_radiance, envmap_direction, envmap_uv, load_envmap, sample_envmap
@@ -176,7 +177,7 @@ def test_load_envmap(tmp_path):
     np.testing.assert_allclose(env.radiance, img, rtol=1e-6)
     bad = img.copy()
     bad[0, 0, 0] = np.nan
-    write_exr(tmp_path / "nan.exr", bad)
+    write_foreign_exr(tmp_path / "nan.exr", bad)
     with pytest.raises(InputError, match="nan.exr"):
         load_envmap(tmp_path / "nan.exr")
     (tmp_path / "junk.exr").write_bytes(b"not an exr")

@@ -94,14 +94,18 @@ def test_command_table_figure_and_ground_truth(capture, result, tmp_path):
     assert image.ndim == 3 and image.shape[1] > image.shape[0]
 
 
-@pytest.mark.parametrize("case", ["missing", "not_a_capture", "folds", "suffix", "normals"])
+@pytest.mark.parametrize("case", ["missing", "not_a_capture", "folds", "suffix", "normals", "out_folder"])
 def test_bad_input_is_one_line_exit_2(capture, tmp_path, case):
     args = {"missing": [tmp_path / "nothing"], "not_a_capture": [tmp_path],
             "folds": [capture, "--folds", 25], "suffix": [capture, "--out", tmp_path / "x.jpg"],
-            "normals": [capture, "--normals", tmp_path / "n.npy"]}[case]
+            "normals": [capture, "--normals", tmp_path / "n.npy"],
+            "out_folder": [capture, "--out", tmp_path / "folder.png"]}[case]
     if case == "normals":
         np.save(tmp_path / "n.npy", np.zeros((3, 3, 3)))   # the wrong size
-    proc = _evaluate(*args, "--out", tmp_path / "e.png") if case != "suffix" else _evaluate(*args)
+    if case == "out_folder":
+        (tmp_path / "folder.png").mkdir()   # a folder named like the figure: refused, kept
+    proc = _evaluate(*args, "--out", tmp_path / "e.png") if case not in ("suffix", "out_folder") else _evaluate(*args)
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
     assert not (tmp_path / "e.png").exists()
+    assert case != "out_folder" or (tmp_path / "folder.png").is_dir()

@@ -1,4 +1,4 @@
-"""Faults survived (issue 26): a damaged store never becomes wrong maps, every failure is one line with
+"""Faults survived: a damaged store never becomes wrong maps, every failure is one line with
 the exit code of its kind, a BTF is complete only when it is, one writer per output.
 
 One small capture (8 x 8 texels, 12 lights of random codes; a store of 4 tiles x 3 light blocks) and
@@ -168,7 +168,7 @@ def test_a_damaged_chunk_is_found_when_read(root, store, array, coords, kind):
                                                ("ratio", (3, 0, 0), "truncated"), ("counts", (0, 0), "missing")])
 def test_a_damaged_chunk_is_written_again_from_the_capture(root, store, reference, array, coords, kind, caplog):
     """With the capture at hand the fit writes the chunk's light block again and gives the maps of the
-    undamaged store bit for bit (issue 26: a deleted chunk gave 256 wrong texels with exit 0)."""
+    undamaged store bit for bit (a deleted chunk once gave 256 wrong texels with exit 0)."""
     bad = _copy(store, root / f"repair_{array}_{kind}")
     _damage(_chunk(bad, array, coords), kind)
     with _fit_mode(root), caplog.at_level(logging.WARNING, logger="fitting.ingest"):
@@ -401,7 +401,7 @@ def test_killed_between_level0_and_the_pyramid(root, store, reference):
     """SIGKILL after level 0 is written, inside the next level's write: no `btf.json`, so every reader
     refuses the directory with one line (`read_btf`, `fitting relight`, `fitting report`, `fitting
     pyramid`, `jaxrender noh --btf`); the rerun completes it with every level, bit for bit, and leaves
-    no temporaries (issue 26: btf.json listed level 0 only for half the run, and readers took it)."""
+    no temporaries (btf.json once listed level 0 only for half the run, and readers took it)."""
     out = root / "btf_killed"
     proc = subprocess.run([sys.executable, "-c", textwrap.dedent(KILL_AFTER_LEVEL0.format(chunk=TILE)), str(store),
                            str(out)], env=_env(root), capture_output=True, timeout=600)

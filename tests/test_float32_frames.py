@@ -93,7 +93,7 @@ def test_desert_frame_float32_matches_float64(tmp_path):
 # pixel; the stage's light is deterministic). The Monte Carlo draws come from the same keys, but their
 # bits depend on the dtype, and the robe's Verlet steps round differently, so the two frames are two
 # estimates of the same image: compared through means, whose noise averages out. Measured on the
-# Takigi Noh scene (issue 25): image means 0.04434 (float32) vs 0.04443 (float64), 0.2 % apart; the
+# Takigi Noh scene: image means 0.04434 (float32) vs 0.04443 (float64), 0.2 % apart; the
 # median over the lit 8 x 8-pixel blocks of their relative difference 0.011 % (the performer covers a
 # few blocks). The bounds were set on the earlier scene (0.9 % and 4.3 % measured there) and kept. A
 # float32 defect (NaN, a black or blown-out region, a wrong exposure) moves these by far more.

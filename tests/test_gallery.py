@@ -12,11 +12,13 @@ from jaxrender.app.cli.programs import jaxrender_main as main
 
 def _fake_section(out_dir, *, quick=False):
     io.write_png(out_dir / "img.png", np.full((4, 4, 3), 0.5))
-    return [{"title": "fake", "images": ["img.png"], "caption": "a grey square",
-             "params": {"size": 4, "quick": quick}, "timings": {"render_s": 0.25}}]
+    yield {"title": "fake", "images": ["img.png"], "caption": "a grey square",
+           "params": {"size": 4, "quick": quick}, "timings": {"render_s": 0.25}}
 
 
 def _broken_section(out_dir, *, quick=False):
+    io.write_png(out_dir / "first.png", np.full((4, 4, 3), 0.25))
+    yield {"title": "first", "images": ["first.png"], "caption": "written before the failure"}
     raise RuntimeError("boom")
 
 
@@ -24,12 +26,17 @@ def test_gallery_page_lists_images_params_timings_and_failures(tmp_path, monkeyp
     monkeypatch.setitem(sys.modules, "fake_ok", types.SimpleNamespace(gallery_section=_fake_section))
     monkeypatch.setitem(sys.modules, "fake_broken", types.SimpleNamespace(gallery_section=_broken_section))
     monkeypatch.setattr(gallery, "SECTIONS", {"ok": ("fake_ok", "OK section"), "broken": ("fake_broken", "Broken")})
-    result = gallery.render_gallery(tmp_path, quick=True, log=lambda *a: None)
+    lines = []
+    result = gallery.render_gallery(tmp_path, quick=True, log=lines.append)
     page = (tmp_path / "index.html").read_text()
     assert (tmp_path / "ok" / "img.png").is_file()
     assert 'src="ok/img.png"' in page and "a grey square" in page and "render_s" in page
     assert result["sections"]["ok"]["error"] is None
     assert "boom" in result["sections"]["broken"]["error"] and "boom" in page
+    # each entry is announced as it is written; a section's entries before its failure stay on the page
+    assert any(line.startswith("[gallery] ok: wrote ok/img.png (") for line in lines), lines
+    assert any(line.startswith("[gallery] broken: wrote broken/first.png (") for line in lines), lines
+    assert 'src="broken/first.png"' in page and "written before the failure" in page
 
 
 def test_gallery_cli_rejects_unknown_section(tmp_path, capsys):

@@ -16,7 +16,7 @@ from jaxrender.shadows import _horizon, horizon_directions, horizon_map
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from _horizon_numba import horizon_scan_numba, horizon_sweep_numba  # noqa: E402
 
-REL_TOL = 1e-6  # issue 16: the sweep equals the search "within float rounding"; both evaluate one formula
+REL_TOL = 1e-6  # the sweep equals the search "within float rounding"; both evaluate one formula
 F32_TOL = 1e-6  # float32: same formula per sample, so the same rounding (a few ulps at most)
 
 

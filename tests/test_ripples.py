@@ -110,7 +110,7 @@ def assert_steps_conserve_bit_for_bit(step, h0, amount, steps):
 
 @pytest.mark.parametrize("hop,wind_deg", [("split", 0.0), ("nearest", 0.0), ("split", 30.0), ("split", 90.0)])
 def test_step_conserves_sand_bit_for_bit_float32(hop, wind_deg):
-    """Issue 15: in float32 what leaves a cell is what arrives elsewhere, bit for bit. The field is
+    """In float32 what leaves a cell is what arrives elsewhere, bit for bit. The field is
     first put on a coarse binary grid (2^-12), finer grids contain it, so the first step rounds
     nothing; then every step whose sand grid did not coarsen keeps the exact total."""
     h0 = init_ripples(jax.random.key(11), (24, 40), dtype=jnp.float32)

@@ -53,8 +53,35 @@ _CASES = {
     "up parallel": (_edit(lambda s: s["camera"].update(up=[0, -1, -12])),
                     "camera.up: parallel to the viewing direction"),
     "missing block": (_edit(lambda s: s.pop("medium")), "medium: missing field"),
+    "beyond float32": (_edit(lambda s: s["medium"].update(rho=1e39)), "medium.rho: 1e+39 is beyond float32's range"),
+    "intensity beyond float32": (_edit(lambda s: s["spotlights"][0].update(intensity=1e39)),
+                                 "spotlights[0].intensity: 1e+39 is beyond float32's range"),
+    "up not given": (_edit(lambda s: (s["spotlights"][0].pop("up"), s["spotlights"][0].update(target=[0, -1, 0]))),
+                     "spotlights[0].up: not given, and the default up [0, 1, 0] is parallel to the light's direction"),
     "bad json": ("{not json", "not valid JSON"),
 }
+
+
+def test_optional_sections_absent(tmp_path):
+    """`render` and `objects` may be left out (other tools' scene files): the defaults apply."""
+    from jaxrender.app.scenes.shafts_file import RENDER_DEFAULTS
+
+    scene = load_shafts_scene(_write(tmp_path, _edit(lambda s: (s.pop("render"), s.pop("objects")))))
+    assert scene.render.spp == 1 and scene.render.shadow_map == RENDER_DEFAULTS["shadow_map"]
+    assert float(scene.render.s_max) == RENDER_DEFAULTS["s_max"]
+    assert scene.spheres.center.shape == (0, 3) and scene.quads.center.shape == (0, 3)
+
+
+def test_an_image_of_nan_is_a_bug_not_a_result(tmp_path, capsys, monkeypatch):
+    """Whatever produced it, a frame with NaN is never written: one line, exit code 1."""
+    import jaxrender.app.cli.shafts as command
+
+    monkeypatch.setattr(command, "render", lambda scene, **kw: np.full((6, 8, 3), np.nan, np.float32))
+    out = tmp_path / "x.png"
+    assert main(["shafts", str(_write(tmp_path, _SCENE)), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "144 of 144 values to write are NaN or infinite" in err[0] and "a bug" in err[0]
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("case", sorted(_CASES))
@@ -131,3 +158,12 @@ def test_sizes_beyond_the_renderers_indices_are_refused_up_front(tmp_path, capsy
     scene = _edit(lambda s: (s["camera"].update(width=size[0], height=size[1]), s["render"].update(spp=4)))
     with pytest.raises(InputError):
         shafts_scene_from_dict(scene, source="x.json", base_dir=tmp_path)
+
+
+@pytest.mark.parametrize("option, value", [("--time", "-1"), ("--width", "inf"), ("--error", "nan")])
+def test_bad_option_values_one_line(tmp_path, capsys, option, value):
+    out = tmp_path / "x.png"
+    assert main(["shafts", str(_write(tmp_path, _SCENE)), "--out", str(out), option, value]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and option in err[0] and "usage" not in err[0], err
+    assert not out.exists()

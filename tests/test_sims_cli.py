@@ -78,8 +78,9 @@ def test_bad_input_one_line_exit_2(tmp_path, capsys):
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no temporaries left
 
 
-@pytest.mark.parametrize("argv", [["ripples", "--hop", "bogus"]])
-def test_argparse_errors_exit_2(argv, tmp_path):
-    with pytest.raises(SystemExit) as info:
-        main(argv + ["--out", str(tmp_path / "x.npy")])
-    assert info.value.code == 2
+@pytest.mark.parametrize("argv", [["ripples", "--hop", "bogus"], ["dunes", "--steps", "many"],
+                                  ["ripples", "--b", "1e39"]])
+def test_argparse_errors_exit_2(argv, tmp_path, capsys):
+    assert main(argv + ["--out", str(tmp_path / "x.npy")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("sims ") and "usage" not in err, err

@@ -14,7 +14,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from capture_helpers import write_capture
+from capture_helpers import write_capture, write_foreign_exr
 
 from fitting import (
     CaptureError,
@@ -221,9 +221,9 @@ def test_nan_in_exr_found_in_the_pass_leaves_no_store(tmp_path):
     cap = _small_capture(tmp_path / "cap", "exr")
     bad = np.full((4, 5, 3), 0.5, np.float32)
     bad[1, 1, 0] = np.nan
-    write_exr(cap / "images/l1_e0.exr", bad)
+    write_foreign_exr(cap / "images/l1_e0.exr", bad)
     bad[2, 2, 2] = np.inf
-    write_exr(cap / "images/l1_e1.exr", bad)
+    write_foreign_exr(cap / "images/l1_e1.exr", bad)
     with pytest.raises(CaptureError) as info:
         ingest_capture(cap, tmp_path / "store", light_block=2, progress=False)
     assert info.value.problems == [f"{cap / 'images/l1_e0.exr'}: 1 non-finite values (NaN)",

@@ -179,13 +179,12 @@ def test_cli_synth_bad_input_exit_2_and_no_output(tmp_path, capsys, monkeypatch)
     occupied.mkdir()
     (occupied / "notes.txt").write_text("keep me")
     args = ["--size", str(SIZE[0]), str(SIZE[1]), "--lights", str(N_LIGHTS)]
-    assert fitting_main(["synth", str(occupied), *args]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and f"{occupied}: exists and is not an empty directory" in err
-    assert sorted(p.name for p in occupied.iterdir()) == ["notes.txt"]
-    with pytest.raises(SystemExit) as info:  # argparse: usage error, exit 2
-        fitting_main(["synth", str(tmp_path / "new"), "--lights", "0"])
-    assert info.value.code == 2
+    assert fitting_main(["synth", str(occupied), *args]) == 0   # an existing folder is used, its files kept
+    assert sorted(p.name for p in occupied.iterdir()) == ["capture.json", "images", "notes.txt", "truth"]
+    assert (occupied / "notes.txt").read_text() == "keep me" and load_capture(occupied).n_lights == N_LIGHTS
+    capsys.readouterr()
+    assert fitting_main(["synth", str(tmp_path / "new"), "--lights", "0"]) == 2   # argparse: one line, exit 2
+    assert capsys.readouterr().err.count("\n") == 1 and not (tmp_path / "new").exists()
 
     # A failure half-way leaves nothing behind (everything goes through a temporary directory).
     import fitting.synth

@@ -28,6 +28,7 @@ from jaxrender.brdf import BTFTexel
 from jaxrender.io import read_btf, read_exr
 
 SCRIPTS = Path(sys.executable).parent  # console scripts are installed beside the interpreter
+MOCAP = Path(os.environ.get("JAXRENDER_MOCAP", Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"))
 HANG_GUARD_S = 1800  # a hung run fails the test instead of the suite; not a speed assertion
 
 # `sims ripples` / `sims dunes` in float32 over 10,000 steps: the issue's bound on the drift of the
@@ -91,7 +92,7 @@ def exact_total(field) -> float:
 @pytest.mark.parametrize("command,low,high,extra", [("ripples", 1.0, 1.5, ["--L0", "9"]),
                                                     ("dunes", 2.0, 4.0, ["--wind-deg", "30"])])
 def test_sims_conserve_sand_over_10000_steps_float32(tmp_path, command, low, high, extra):
-    """Issue 15: `sims ripples` / `sims dunes` (float32, chunks of 100 steps with a progress bar) keep
+    """`sims ripples` / `sims dunes` (float32, chunks of 100 steps with a progress bar) keep
     the total of a 32 x 48 field to within 1e-6 over 10,000 steps; the features did grow."""
     init = np.random.default_rng(7).uniform(low, high, (32, 48)).astype(np.float32)
     np.save(tmp_path / "init.npy", init)
@@ -130,12 +131,44 @@ def test_jaxrender_desert_small(tmp_path):
     assert np.corrcoef(np.argsort(np.argsort(lum_png)), np.argsort(np.argsort(lum_exr)))[0, 1] > 0.95  # same picture
 
 
+def users_folder(folder: Path) -> dict[Path, bytes]:
+    """A folder of the user's (a note, a photo in a subfolder) that a command's output goes into: the
+    files it held before, to check that they are still there after."""
+    (folder / "photos").mkdir(parents=True)
+    (folder / "notes.txt").write_text("my notes")
+    (folder / "photos" / "a.jpg").write_bytes(b"my photo")
+    return {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+def assert_kept(kept: dict[Path, bytes]) -> None:
+    for path, content in kept.items():
+        assert path.read_bytes() == content, f"{path} was changed or removed"
+
+
+def relabelled_walk(path: Path) -> Path:
+    """The captured walk with its rotation channels relabelled X Y Z (the same numbers in another
+    order: a pose no one captured, limbs flung about), saved with a byte-order mark and CRLF line ends."""
+    clip = MOCAP / "walk_normal_001.bvh"
+    assert clip.is_file(), f"{clip}: the motion capture data is missing (set JAXRENDER_MOCAP)"
+    text = clip.read_text().replace("Zrotation Xrotation Yrotation", "Xrotation Yrotation Zrotation")
+    path.write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode())
+    return path
+
+
 def test_jaxrender_noh_small(tmp_path):
-    """Two 64 x 48 frames of the Noh scene: PNG + linear EXR per frame, the GIF and the MP4; the frames are
-    pictures, and they differ (the fires flicker) but show the same scene."""
+    """Two 64 x 48 frames of the Noh scene dancing an odd motion (a real walk with relabelled rotation
+    channels, BOM, CRLF), written with `--out .` into a folder of the user's that holds the motion
+    (its files stay): PNG + linear EXR per frame, the GIF and the MP4; the frames are pictures, and
+    they differ (the fires flicker) but show the same scene."""
     out = tmp_path / "noh"
-    proc = run("jaxrender", "noh", "--out", out, "--frames", "2", "--width", "64", "--height", "48")
+    kept = users_folder(out)
+    motion = relabelled_walk(out / "walk.bvh")
+    kept[motion] = motion.read_bytes()
+    proc = run("jaxrender", "noh", "--out", ".", "--motion", "walk.bvh", "--frames", "2", "--width", "64",
+               "--height", "48", cwd=out)
     assert "2 frames" in proc.stdout
+    assert_kept(kept)
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]   # no staging folder left
     frames = []
     for i in range(2):
         png = read_rgb(out / f"frame_{i:03d}.png")
@@ -160,11 +193,14 @@ def fitted(tmp_path_factory):
     root = tmp_path_factory.mktemp("user_fit")
     capture = synth_capture(root / "capture", key=jax.random.key(5), size=(8, 8), lights=60, progress=False)
     btf = root / "btf"
-    run("fitting", "fit", capture, "--out", btf, "--no-pyramid")
+    kept = users_folder(btf)   # fitted with `--out .` from inside a folder of the user's: its files stay
+    run("fitting", "fit", capture, "--out", ".", "--no-pyramid", cwd=btf)
     manifest, levels = read_btf(btf)
     assert len(levels) == 1
     level0 = {k: np.array(v) for k, v in levels[0].items()}
     run("fitting", "pyramid", btf)
+    assert_kept(kept)
+    assert sorted(p.name for p in btf.iterdir() if p.name.startswith(".")) == []   # no store, partial or lock left
     return capture, btf, level0
 
 
@@ -223,8 +259,12 @@ def test_gallery_quick_end_to_end(tmp_path):
     """The main job: `jaxrender gallery --quick`, every section rendered without error, every image the
     page shows is on disk, readable and a picture, and the index links them all."""
     out = tmp_path / "gallery"
+    kept = users_folder(out)   # an existing folder is used, its other files kept
     proc = run("jaxrender", "gallery", "--quick", "--out", out)
     assert "FAILED" not in proc.stdout
+    assert_kept(kept)
+    # not a terminal: no progress bars, one line per entry as it is written
+    assert "\r" not in proc.stderr and "it/s" not in proc.stderr and "section/s" not in proc.stderr, proc.stderr
     result = json.loads((out / "gallery.json").read_text())
     assert result["quick"] is True
     assert set(result["sections"]) == set(SECTIONS)
@@ -234,6 +274,7 @@ def test_gallery_quick_end_to_end(tmp_path):
         assert section["entries"], f"{name}: no entries"
         for entry in section["entries"]:
             assert entry["title"] and entry["images"], (name, entry)
+            assert f"[gallery] {name}: wrote {', '.join(entry['images'])} (" in proc.stdout, proc.stdout
             for rel in entry["images"]:
                 assert rel.startswith(f"{name}/")
                 assert rel in page, f"index.html does not show {rel}"

@@ -1,9 +1,10 @@
 """File I/O at the edge of the toolkit: EXR (OpenEXR), PNG (scikit-image), BTF directories,
-BVH motion capture, colour transfer functions and tone mapping, atomic writes, output locks, and the
-error types."""
+BVH motion capture, colour transfer functions and tone mapping, atomic writes, what a command may do
+to its outputs (`output_file`, `output_folder`, `check_finite`), output locks, and the error types."""
 
 from ..errors import InputError as InputError
 from ..errors import InputErrors as InputErrors
+from ..errors import NonFiniteOutput as NonFiniteOutput
 from ..errors import OutputBusy as OutputBusy
 from ._atomic import atomic_path as atomic_path
 from ._atomic import remove_temporaries as remove_temporaries
@@ -27,6 +28,7 @@ from ._color import linear_to_srgb as linear_to_srgb
 from ._color import luminance as luminance
 from ._color import srgb_to_linear as srgb_to_linear
 from ._color import tonemap as tonemap
+from ._fields import FLOAT32_MAX as FLOAT32_MAX
 from ._fields import MAX_PROBLEMS as MAX_PROBLEMS
 from ._fields import Fields as Fields
 from ._fields import Problems as Problems
@@ -44,3 +46,6 @@ from ._lock import LOCK_NAME as LOCK_NAME
 from ._lock import lock_owner as lock_owner
 from ._lock import output_lock as output_lock
 from ._mat import read_mat as read_mat
+from ._outputs import check_finite as check_finite
+from ._outputs import output_file as output_file
+from ._outputs import output_folder as output_folder

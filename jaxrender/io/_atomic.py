@@ -1,5 +1,5 @@
 """Atomic writes (`atomic_path`: a temporary sibling renamed onto the path) and the removal of the
-temporaries a killed writer left behind (`remove_temporaries`)."""
+temporaries a killed writer left behind (`remove_temporaries`, `output_folder`'s staging folders too)."""
 
 from __future__ import annotations
 
@@ -19,40 +19,31 @@ def _umask() -> int:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, *, directory: bool = False) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary sibling of `path`; rename it onto `path` only if the block succeeds.
 
-    A reader never sees a half-written file (or directory, with `directory=True`): on any
-    error the temporary is removed and `path` is left as it was.
+    A reader never sees a half-written file: on any error the temporary is removed and `path` is
+    left as it was. (A folder of outputs: `output_folder`.)
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    suffix = "".join(path.suffixes) if not directory else ""
     try:
-        if directory:
-            tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
-        else:
-            fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp" + suffix, dir=path.parent)
-            os.close(fd)
-            tmp = Path(name)
+        fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp" + "".join(path.suffixes), dir=path.parent)
+        os.close(fd)
+        tmp = Path(name)
     except OSError as error:   # name the file being written, not its temporary
         raise OSError(error.errno, error.strerror, os.fspath(path)) from None
     try:
         yield tmp
         # mkstemp / mkdtemp make the temporary private (0600 / 0700): give it the mode a plain open or
         # mkdir would have given `path` under the user's umask
-        tmp.chmod((0o777 if tmp.is_dir() else 0o666) & ~_umask())
-        if directory and path.exists():
-            shutil.rmtree(path)
+        tmp.chmod(0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException as error:
         if isinstance(error, OSError) and (error.filename is None or os.fspath(error.filename) == os.fspath(tmp)):
             error.filename = os.fspath(path)   # a failed write() names no file, or the temporary: name the target
             error.filename2 = None
-        if tmp.is_dir():
-            shutil.rmtree(tmp, ignore_errors=True)
-        else:
-            tmp.unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
 
 

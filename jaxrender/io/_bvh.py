@@ -15,10 +15,12 @@ import numpy as np
 
 from ..errors import InputError
 from ._atomic import atomic_path
+from ._fields import FLOAT32_MAX
 
 __all__ = ["CHANNEL_NAMES", "BVHMotion", "read_bvh", "write_bvh"]
 
 CHANNEL_NAMES = ("Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation")
+MIN_FRAME_TIME, MAX_FRAME_TIME = 1e-6, 3600.0   # s: a MHz capture to a frame an hour
 _CANONICAL = {name.lower(): name for name in CHANNEL_NAMES}
 
 
@@ -98,11 +100,40 @@ class _Tokens:
             raise self.error(line, f"{what}: {word!r} is not a number") from None
         if not np.isfinite(value):
             raise self.error(line, f"{what}: {word!r} is not finite")
+        if abs(value) > FLOAT32_MAX:
+            raise self.error(line, f"{what}: {word!r} is beyond float32's range, in which the toolkit computes")
         return value
 
 
-def _joint(tok: _Tokens, name: str, parent: int, out: dict) -> None:
-    """One JOINT/ROOT block (its name already read), recursively."""
+def _hierarchy(tok: _Tokens, root: str, out: dict) -> None:
+    """A ROOT block (its name already read) and every joint below it, with an explicit stack of the
+    open joints (a chain of any depth reads without recursion)."""
+    open_joints = [_joint(tok, root, -1, out)]
+    while open_joints:
+        word, line = tok.take("JOINT, End Site or '}'")
+        parent = open_joints[-1]
+        if word == "}":
+            open_joints.pop()
+        elif word.upper() == "JOINT":
+            child, _ = tok.take("a joint name")
+            open_joints.append(_joint(tok, child, parent, out))
+        elif word.upper() == "END":
+            tok.expect("Site")
+            tok.expect("{")
+            tok.expect("OFFSET")
+            offset = [tok.number("OFFSET x"), tok.number("OFFSET y"), tok.number("OFFSET z")]
+            tok.expect("}")
+            out["names"].append(f"{out['names'][parent]}_end")
+            out["parents"].append(parent)
+            out["end_site"].append(True)
+            out["offsets"].append(offset)
+            out["channels"].append(())
+        else:
+            raise tok.error(line, f"expected JOINT, End Site or '}}' in joint {out['names'][parent]!r}, got {word!r}")
+
+
+def _joint(tok: _Tokens, name: str, parent: int, out: dict) -> int:
+    """The head of a JOINT/ROOT block (its name already read): '{', OFFSET, CHANNELS; its index."""
     index = len(out["names"])
     out["names"].append(name)
     out["parents"].append(parent)
@@ -125,26 +156,7 @@ def _joint(tok: _Tokens, name: str, parent: int, out: dict) -> None:
         if len(set(channels)) != len(channels):
             raise tok.error(line, f"joint {name!r} lists a channel twice: {' '.join(channels)}")
     out["channels"].append(tuple(channels))
-    while True:
-        word, line = tok.take("JOINT, End Site or '}'")
-        if word == "}":
-            return
-        if word.upper() == "JOINT":
-            child, _ = tok.take("a joint name")
-            _joint(tok, child, index, out)
-        elif word.upper() == "END":
-            tok.expect("Site")
-            tok.expect("{")
-            tok.expect("OFFSET")
-            offset = [tok.number("OFFSET x"), tok.number("OFFSET y"), tok.number("OFFSET z")]
-            tok.expect("}")
-            out["names"].append(f"{name}_end")
-            out["parents"].append(index)
-            out["end_site"].append(True)
-            out["offsets"].append(offset)
-            out["channels"].append(())
-        else:
-            raise tok.error(line, f"expected JOINT, End Site or '}}' in joint {name!r}, got {word!r}")
+    return index
 
 
 def _header_value(path: Path, lines: list[str], n: int, key: str) -> tuple[str, int]:
@@ -164,7 +176,7 @@ def read_bvh(path: str | os.PathLike) -> BVHMotion:
     on anything malformed."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8", errors="strict")
+        text = path.read_text(encoding="utf-8-sig", errors="strict")   # a byte-order mark is not content
     except FileNotFoundError:
         raise InputError(path, "no such file") from None
     except UnicodeDecodeError:
@@ -184,7 +196,7 @@ def read_bvh(path: str | os.PathLike) -> BVHMotion:
         if word.upper() != "ROOT":
             raise tok.error(line, f"expected ROOT, got {word!r}")
         name, _ = tok.take("the root's name")
-        _joint(tok, name, -1, out)
+        _hierarchy(tok, name, out)
     if not out["names"]:
         raise InputError(path, f"line {first + 1}: no ROOT in the hierarchy")
     if tok.motion_line is None:
@@ -204,8 +216,8 @@ def read_bvh(path: str | os.PathLike) -> BVHMotion:
         frame_time = float(value)
     except ValueError:
         raise InputError(path, f"line {n}: Frame Time: {value!r} is not a number") from None
-    if not (np.isfinite(frame_time) and frame_time > 0):
-        raise InputError(path, f"line {n}: Frame Time: must be > 0, got {value}")
+    if not (np.isfinite(frame_time) and MIN_FRAME_TIME <= frame_time <= MAX_FRAME_TIME):
+        raise InputError(path, f"line {n}: Frame Time: must be {MIN_FRAME_TIME:g} to {MAX_FRAME_TIME:g} s, got {value}")
     width = sum(len(c) for c in out["channels"])
     rows = []
     for k in range(n, len(lines)):
@@ -224,8 +236,11 @@ def read_bvh(path: str | os.PathLike) -> BVHMotion:
             raise InputError(path, f"line {k + 1}: {bad!r} is not a number") from None
         if not np.all(np.isfinite(row)):
             raise InputError(path, f"line {k + 1}: a channel value is not finite")
+        if np.any(np.abs(row) > FLOAT32_MAX):
+            raise InputError(path, f"line {k + 1}: a channel value is beyond float32's range, in which the toolkit "
+                                   "computes")
         rows.append(row)
-    if len(rows) < frames:
+    if len(rows) < frames and width:   # (no channels at all: a frame is an empty line, blank lines are frames)
         raise InputError(path, f"line {len(lines)}: Frames: {frames} but the file ends after {len(rows)} motion lines")
     motion = np.stack(rows) if width else np.zeros((frames, 0))
     return BVHMotion(tuple(out["names"]), tuple(out["parents"]), np.asarray(out["offsets"], np.float64),

@@ -30,7 +30,8 @@ def tonemap(image: Float[ArrayLike, "H W C"], *, exposure: float = 1.0, method: 
     `method`: "aces" (Narkowicz's fit of the ACES filmic curve), "reinhard" (x / (1 + x)),
     or "clip" (plain clamp: what the paper's 8-bit frame buffer shows).
     """
-    x = jnp.maximum(jnp.asarray(image) * exposure, 0.0)
+    # the curves saturate long before 1e4; clipping there keeps x * x finite for any finite radiance
+    x = jnp.clip(jnp.asarray(image) * exposure, 0.0, 1e4)
     if method == "aces":
         x = (x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14)
     elif method == "reinhard":

@@ -22,9 +22,10 @@ import numpy as np
 
 from ..errors import InputErrors
 
-__all__ = ["Fields", "Problems", "MAX_PROBLEMS", "is_number"]
+__all__ = ["Fields", "Problems", "MAX_PROBLEMS", "FLOAT32_MAX", "is_number"]
 
 MAX_PROBLEMS = 200  # report this many problems, then stop reading
+FLOAT32_MAX = float(np.finfo(np.float32).max)  # the kernels compute in float32: a larger value is infinite there
 _MISSING = object()
 
 
@@ -117,10 +118,11 @@ class Fields:
             if key not in keys:
                 self.problem(key, f"unknown field (expected one of: {', '.join(keys)})")
 
-    def section(self, key: str, *, required: bool = True) -> "Fields":
+    def section(self, key: str, *, required: bool = True, defaults: bool = False) -> "Fields":
         """The object under `key` (empty when missing or not an object; a problem noted unless it
-        is optional and absent)."""
-        value = self.raw(key, default=_MISSING if required else None)
+        is optional and absent). With `defaults`, an absent optional section reads as `{}`: every
+        read of it gives its default."""
+        value = self.raw(key, default=_MISSING if required else ({} if defaults else None))
         if value is not None and not isinstance(value, dict):
             self.problem(key, "expected an object")
         return Fields(value, self.path(key), self.source, self.problems)
@@ -158,6 +160,10 @@ class Fields:
             self.problem(key, f"expected a number, got {value!r}")
             return None
         value = float(value)
+        if abs(value) > FLOAT32_MAX:
+            self.problem(key, f"{value:g} is beyond float32's range (|x| <= {FLOAT32_MAX:.4g}), in which the "
+                              "toolkit computes")
+            return None
         if lo is not None and (value < lo or (lo_open and value == lo)):
             self.problem(key, f"must be {'>' if lo_open else '>='} {lo:g}, got {value:g}")
             return None
@@ -191,6 +197,10 @@ class Fields:
             self.problem(key, f"expected a list of {n} numbers, got {value!r}")
             return None
         out = np.asarray(value, dtype=np.float64)
+        if np.any(np.abs(out) > FLOAT32_MAX):
+            self.problem(key, f"{value!r} is beyond float32's range (|x| <= {FLOAT32_MAX:.4g}), in which the "
+                              "toolkit computes")
+            return None
         if lo is not None and np.any(out < lo):
             self.problem(key, f"every value must be >= {lo:g}, got {value!r}")
             return None
@@ -203,6 +213,10 @@ class Fields:
             return None
         values = [value] * 3 if is_number(value) else value
         ok = isinstance(values, (list, tuple)) and len(values) == 3 and all(is_number(v) for v in values)
+        if ok and any(abs(v) > FLOAT32_MAX for v in values):
+            self.problem(key, f"{value!r} is beyond float32's range (|x| <= {FLOAT32_MAX:.4g}), in which the "
+                              "toolkit computes")
+            return None
         if ok and all((v > 0) if positive else (v >= 0) for v in values):
             return np.asarray(values, dtype=np.float64)
         self.problem(key, f"expected a {'positive' if positive else 'non-negative'} number or RGB triple, "

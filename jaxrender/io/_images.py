@@ -12,6 +12,7 @@ import numpy as np
 from ..errors import InputError
 from ._atomic import atomic_path
 from ._color import linear_to_srgb, srgb_to_linear, tonemap
+from ._outputs import check_finite
 
 _EXR_RGB = ("R", "G", "B")
 
@@ -53,6 +54,7 @@ def write_exr(path: str | os.PathLike, image: np.ndarray | dict[str, np.ndarray]
     shapes = {v.shape for v in channels.values()}
     if len(shapes) != 1 or len(next(iter(shapes))) != 2:
         raise ValueError(f"EXR channels must share one 2-D shape, got {shapes}")
+    check_finite(np.stack(list(channels.values())), path)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with atomic_path(path) as tmp:
         try:
@@ -148,13 +150,14 @@ def write_png(path: str | os.PathLike, image: np.ndarray, *, srgb: bool = True, 
     import skimage.io
 
     array = np.asarray(image, dtype=np.float32)
+    check_finite(array, path)   # a NaN would write as black: refused, not hidden
     if array.ndim == 3 and array.shape[2] == 1:
         array = array[..., 0]
     if srgb:
         color = array if array.ndim == 2 else array[..., :3]
         encoded = np.asarray(linear_to_srgb(color))
         array = encoded if array.ndim == 2 else np.concatenate([encoded, array[..., 3:]], axis=-1)
-    array = np.nan_to_num(np.clip(array, 0.0, 1.0))
+    array = np.clip(array, 0.0, 1.0)
     if bits == 8:
         out = np.round(array * 255.0).astype(np.uint8)
     elif bits == 16:

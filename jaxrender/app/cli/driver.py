@@ -17,6 +17,7 @@ import logging
 import os
 import sys
 import traceback
+import warnings
 from collections.abc import Sequence
 from types import ModuleType
 
@@ -27,6 +28,7 @@ from jaxrender.errors import (
     EXIT_INTERRUPTED,
     EXIT_MACHINE,
     InputError,
+    NonFiniteOutput,
     OutputBusy,
 )
 
@@ -44,16 +46,34 @@ def _output_of(args) -> str | None:
     return None
 
 
-def describe_failure(error: BaseException, output: str | None = None) -> tuple[int, str]:
-    """(exit code, message) of a failure: the file and the problem, one line (an `InputErrors`: one per problem)."""
+_OUT_OF_MEMORY = ("RESOURCE_EXHAUSTED", "out of memory", "bad_alloc", "failed to allocate")
+_MEMORY_OPTIONS = ("memory_gb", "chunk")   # the options that lower a command's memory, where it has them
+
+
+def _out_of_memory(error: BaseException) -> bool:
+    if isinstance(error, MemoryError):
+        return True
+    text = str(error).lower()
+    return type(error).__name__ in ("XlaRuntimeError", "JaxRuntimeError") and any(
+        s.lower() in text for s in _OUT_OF_MEMORY)
+
+
+def describe_failure(error: BaseException, output: str | None = None, options=()) -> tuple[int, str]:
+    """(exit code, message) of a failure: the file and the problem, one line (an `InputErrors`: one per
+    problem). `options`: the command's argument names (its advice names only options it has)."""
     if isinstance(error, InputError):
         return EXIT_INPUT, str(error)
     if isinstance(error, OutputBusy):
         return EXIT_BUSY, str(error)
     where = f"{output}: " if output else ""
-    if isinstance(error, MemoryError) or (type(error).__name__ in ("XlaRuntimeError", "JaxRuntimeError")
-                                          and "RESOURCE_EXHAUSTED" in str(error)):
-        return EXIT_MACHINE, f"{where}out of memory ({type(error).__name__}); free memory or lower --memory-gb/--chunk"
+    if isinstance(error, NonFiniteOutput):
+        return EXIT_INTERNAL, (f"internal error: {error} (a bug: rerun with --debug or {DEBUG_ENV}=1 for the "
+                               "traceback, and report it)")
+    if _out_of_memory(error):
+        lower = [f"--{name.replace('_', '-')}" for name in _MEMORY_OPTIONS if name in options]
+        advice = f"free memory or lower {'/'.join(lower)}" if lower else "free memory or ask for a smaller output"
+        said = str(error) if isinstance(error, MemoryError) and str(error) else type(error).__name__
+        return EXIT_MACHINE, f"{where}out of memory ({said}); {advice}"
     if isinstance(error, OSError):
         # a failed write names no file (a full disk): name the command's output; an error without an
         # errno (a Dask scheduler that does not answer) is not about the output
@@ -68,12 +88,21 @@ def describe_failure(error: BaseException, output: str | None = None) -> tuple[i
                            f"{DEBUG_ENV}=1 for the traceback, and report it)")
 
 
+class UsageError(Exception):
+    """A command line argparse refuses (a bad option or value): one line, exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):   # argparse would print the usage too: the one line is enough
+        raise UsageError(f"{self.prog}: error: {message} (--help lists the options)")
+
+
 def command_parser(prog: str, name: str, commands: dict[str, tuple[str, str]]
                    ) -> tuple[ModuleType, argparse.ArgumentParser]:
     """The subcommand's module (imported now) and its configured parser (also read by the docs' CLI pages)."""
     module_path, help_ = commands[name]
     module = importlib.import_module(module_path)
-    parser = argparse.ArgumentParser(prog=f"{prog} {name}", description=help_)
+    parser = _Parser(prog=f"{prog} {name}", description=help_)
     module.configure(parser)
     parser.add_argument("--debug", action="store_true",
                         help=f"on failure, print the traceback above the one-line error (also: {DEBUG_ENV}=1)")
@@ -95,7 +124,14 @@ def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
         return 0 if argv else 2
     name = argv[0]
     module, parser = command_parser(prog, name, commands)
-    args = parser.parse_args(argv[1:])
+    try:
+        args = parser.parse_args(argv[1:])
+    except UsageError as error:
+        print(error, file=sys.stderr)
+        return EXIT_INPUT
+    shown = warnings.showwarning
+    # a warning is one line too, naming the command (Python's shows the source line below it)
+    warnings.showwarning = lambda message, *rest, **kw: print(f"{prog} {name}: warning: {message}", file=sys.stderr)
     try:
         return int(module.run(args) or 0)
     except KeyboardInterrupt:
@@ -108,6 +144,9 @@ def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
             # the line below is the whole report: background tasks a failed write left behind (zarr's
             # chunk writes) must not add their own at exit
             logging.getLogger("asyncio").disabled = True
-        code, text = describe_failure(error, _output_of(args))
-        print(f"{prog} {name}: error: {text}", file=sys.stderr)
+        code, text = describe_failure(error, _output_of(args), options=vars(args))
+        for line in text.splitlines() or [""]:   # one line per problem, each naming the command
+            print(f"{prog} {name}: error: {line}", file=sys.stderr)
         return code
+    finally:
+        warnings.showwarning = shown

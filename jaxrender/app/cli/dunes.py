@@ -8,13 +8,14 @@ import argparse
 
 from sims import DuneParams, init_dunes, simulate_dunes
 
+from .arguments import number
 from .fields import add_common, execute
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     add_common(parser, L0=7.0, b=2.0, D=0.8, size="64", steps=2000)
-    parser.add_argument("--q0", type=float, default=1.5, help="sand moved on flat ground (default 1.5)")
-    parser.add_argument("--b-prime", type=float, default=2.0, help="slope coefficient b' of the amount (default 2.0)")
+    parser.add_argument("--q0", type=number, default=1.5, help="sand moved on flat ground (default 1.5)")
+    parser.add_argument("--b-prime", type=number, default=2.0, help="slope coefficient b' of the amount (default 2.0)")
 
 
 def run(args: argparse.Namespace) -> int:

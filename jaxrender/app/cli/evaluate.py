@@ -11,7 +11,7 @@ from pathlib import Path
 from fitting import load_capture, merge_capture, write_folder_manifest
 from fitting.crossval import DEFAULT_FOLDS, cross_validate, figure
 from fitting.evaluate import read_normal_map
-from jaxrender.io import InputError
+from jaxrender.io import InputError, output_file
 
 from .arguments import positive_int
 from .fit_options import add_fit_settings, fit_settings
@@ -49,11 +49,8 @@ def _observations(source: Path):
 
 def run(args) -> int:
     source = Path(args.source)
-    out = Path(args.out) if args.out is not None else Path(f"{source.resolve().name}_evaluate.png")
-    if out.suffix.lower() != ".png":
-        raise InputError(out, "the figure must be a .png")
-    if out.is_dir():
-        raise InputError(out, "is a directory; give a .png file")
+    out = output_file(args.out if args.out is not None else f"{source.resolve().name}_evaluate.png",
+                      suffixes=(".png",), inputs=[args.normals])
     settings = fit_settings(args)
     obs = _observations(source)
     if not 2 <= args.folds <= obs.n_lights:

@@ -3,26 +3,29 @@
 from __future__ import annotations
 
 import argparse
-import math
 import re
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 
-from jaxrender.io import InputError, write_png
+from jaxrender.io import InputError, output_file, write_png
 from sims import FIELD_SUFFIXES, load_field, preview_image, save_field, simulate_in_chunks
+
+from .arguments import check_cells, number
+
+BYTES_PER_CELL = 64   # the automata's peak memory per cell: 42 bytes measured at 4000 x 4000, with a margin
 
 
 def add_common(parser: argparse.ArgumentParser, *, L0: float, b: float, D: float, size: str, steps: int) -> None:
     parser.add_argument("--size", default=size, help=f"grid size N or HxW (default {size}; ignored with --init)")
     parser.add_argument("--steps", type=int, default=steps, help=f"automaton steps (default {steps})")
-    parser.add_argument("--L0", type=float, default=L0, help=f"hop length offset L0 in cells (default {L0})")
-    parser.add_argument("--b", type=float, default=b, help=f"hop length coefficient b (default {b})")
-    parser.add_argument("--D", type=float, default=D, help=f"creep coefficient D (default {D})")
+    parser.add_argument("--L0", type=number, default=L0, help=f"hop length offset L0 in cells (default {L0})")
+    parser.add_argument("--b", type=number, default=b, help=f"hop length coefficient b (default {b})")
+    parser.add_argument("--D", type=number, default=D, help=f"creep coefficient D (default {D})")
     parser.add_argument("--hop", choices=("split", "nearest"), default="split",
                         help="split: share between the two nearest cells (default, differentiable); nearest: the paper")
-    parser.add_argument("--wind-deg", type=float, default=0.0,
+    parser.add_argument("--wind-deg", type=number, default=0.0,
                         help="wind direction, degrees from +x (columns) toward +y (rows) (default 0)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the initial field (default 0)")
     parser.add_argument("--init", type=Path, default=None, metavar="FIELD.npy",
@@ -44,15 +47,13 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def validate(args: argparse.Namespace) -> None:
-    if args.out.suffix.lower() not in FIELD_SUFFIXES:
-        raise InputError(args.out, "output must end in .npy or .exr")
-    if args.preview is not None and args.preview.suffix.lower() != ".png":
-        raise InputError(args.preview, "preview must end in .png")
+    output_file(args.out, suffixes=FIELD_SUFFIXES, inputs=[args.init])
+    if args.preview is not None:
+        output_file(args.preview, suffixes=(".png",), inputs=[args.init, args.out])
+        if args.preview.resolve() == args.out.resolve():
+            raise InputError(args.preview, "is also --out; give the preview its own name")
     if args.steps < 0:
         raise InputError(None, f"--steps must be >= 0, got {args.steps}")
-    for name, value in vars(args).items():
-        if isinstance(value, float) and not math.isfinite(value):
-            raise InputError(None, f"--{name.replace('_', '-')} must be finite, got {value}")
     if not 0.0 <= args.D <= 1.0:
         raise InputError(None, f"--D must be in [0, 1] (creep beyond 1 is unstable), got {args.D}")
 
@@ -63,7 +64,9 @@ def execute(args: argparse.Namespace, *, simulate, init_random, desc: str) -> in
     if args.init is not None:
         field = jnp.asarray(load_field(args.init))
     else:
-        field = init_random(jax.random.key(args.seed), parse_size(args.size))
+        h, w = parse_size(args.size)
+        check_cells(f"--size {h}x{w}", h * w, bytes_per_cell=BYTES_PER_CELL)
+        field = init_random(jax.random.key(args.seed), (h, w))
     field = simulate_in_chunks(simulate, field, args.steps, desc=desc)
     out = save_field(args.out, field)
     if args.preview is not None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from jaxrender.errors import InputError
 
 from ..gallery import SECTIONS, render_gallery
@@ -19,6 +21,8 @@ def run(args) -> int:
     unknown = [s for s in sections or [] if s not in SECTIONS]
     if unknown:
         raise InputError(None, f"--only: unknown sections {unknown}; choose from {list(SECTIONS)}")
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise InputError(args.out, "exists and is not a folder")
     result = render_gallery(args.out, sections=sections, quick=args.quick)
     failed = [name for name, s in result["sections"].items() if s["error"]]
     print(f"gallery written to {args.out}/index.html" + (f" (FAILED sections: {', '.join(failed)})" if failed else ""))

@@ -2,29 +2,27 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from fitting import direction_from_angles, relight
-from jaxrender.io import InputError, write_image
+from jaxrender.io import InputError, output_file, write_image
+
+from .arguments import number
 
 
 def configure(parser):
     parser.add_argument("btf_dir", metavar="BTF_DIR", help="fitted BTF directory")
-    parser.add_argument("--theta", type=float, required=True, help="light elevation from the normal, degrees [0, 90)")
-    parser.add_argument("--phi", type=float, required=True, help="light azimuth, degrees (0 = along image columns)")
-    parser.add_argument("--view-theta", type=float, default=0.0, help="view elevation, degrees (default 0)")
-    parser.add_argument("--view-phi", type=float, default=0.0, help="view azimuth, degrees (default 0)")
+    parser.add_argument("--theta", type=number, required=True, help="light elevation from the normal, degrees [0, 90)")
+    parser.add_argument("--phi", type=number, required=True, help="light azimuth, degrees (0 = along image columns)")
+    parser.add_argument("--view-theta", type=number, default=0.0, help="view elevation, degrees (default 0)")
+    parser.add_argument("--view-phi", type=number, default=0.0, help="view azimuth, degrees (default 0)")
     parser.add_argument("--level", type=int, default=0, help="pyramid level (default 0)")
     parser.add_argument("--out", required=True, metavar="IMG",
                         help="output image: .exr (linear R) or .png (tone-mapped)")
 
 
 def run(args) -> int:
-    out = Path(args.out)
-    if out.suffix.lower() not in (".exr", ".png"):
-        raise InputError(out, "output must be .exr or .png")
+    out = output_file(args.out, suffixes=(".exr", ".png"))
     for name in ("theta", "view_theta"):
         value = getattr(args, name)
         if not 0.0 <= value < 90.0:

@@ -4,7 +4,7 @@ residuals and maps of a fit; held-out lights and normals against a ground truth 
 from __future__ import annotations
 
 from fitting import fit_report
-from jaxrender.io import InputError
+from jaxrender.io import InputError, output_file
 
 
 def configure(parser):
@@ -21,6 +21,8 @@ def configure(parser):
 def run(args) -> int:
     if args.holdout is not None and args.holdout < 2:
         raise InputError(None, f"--holdout must be >= 2, got {args.holdout}")
+    if args.out is not None:
+        output_file(args.out, suffixes=(".png",), inputs=[args.normals])
     report = fit_report(args.capture_dir, args.btf_dir, out=args.out, holdout=args.holdout, normals=args.normals)
     print(report["table"])
     print(f"figure: {report['figure']}")

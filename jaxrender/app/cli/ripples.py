@@ -8,12 +8,13 @@ import argparse
 
 from sims import RippleParams, init_ripples, simulate_ripples
 
+from .arguments import number
 from .fields import add_common, execute
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     add_common(parser, L0=7.3, b=2.0, D=0.8, size="128", steps=3000)
-    parser.add_argument("--q", type=float, default=0.6, help="sand moved by one hop (default 0.6)")
+    parser.add_argument("--q", type=number, default=0.6, help="sand moved by one hop (default 0.6)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -11,13 +11,15 @@ import argparse
 import math
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import numpy as np
 
-from jaxrender.io import InputError, write_image
+from jaxrender.io import FLOAT32_MAX, InputError, output_file, write_image
 from jaxrender.shafts import DEFAULT_METHOD, METHODS, choose_counts, render
 
 from ..scenes import check_image_size, load_shafts_scene
+from .arguments import number
 from .timed import add_time_argument, render_timed
 
 
@@ -40,7 +42,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--samples", type=int, default=None,
                         help="samples along each view ray and light: equiangular (default 24) and raymarch "
                              "(default 180); see --spp for samples per pixel")
-    parser.add_argument("--error", type=float, default=None, metavar="E",
+    parser.add_argument("--error", type=number, default=None, metavar="E",
                         help="choose --samples (or --planes and --subplanes) so that the in-scattered light is "
                              "predicted within relative RMS E of the converged result (e.g. 0.02), from a quick "
                              "estimate on a small proxy of the scene; the choice is printed")
@@ -48,9 +50,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    out = Path(args.out)
-    if out.suffix.lower() not in (".exr", ".png"):
-        raise InputError(out, "output must end in .exr or .png")
+    out = output_file(args.out, suffixes=(".exr", ".png"), inputs=[args.scene])
     if args.method != "planes" and args.quantize_bits:
         raise InputError(None, "--quantize-bits applies to --method planes only "
                                "(the other methods are unquantized)")
@@ -86,7 +86,22 @@ def run(args: argparse.Namespace) -> int:
         choice = choose_counts(scene, args.error, method=args.method, **fixed)
         options.update(choice.options)
         print(choice.describe())
+    scene, scale = _unit_lights(scene) if not args.quantize_bits else (scene, 1.0)
     fn = jax.jit(lambda s: render(s, method=args.method, samples_per_pixel=spp, **options))
-    image = render_timed(lambda: jax.block_until_ready(fn(scene)), args.time)
-    write_image(out, np.asarray(image, dtype=np.float32))
+    image = np.asarray(render_timed(lambda: jax.block_until_ready(fn(scene)), args.time), np.float64) * scale
+    if np.any(np.isinf(image) | (np.abs(image) > FLOAT32_MAX)):
+        raise InputError(args.scene, f"the rendered radiance exceeds float32's range ({FLOAT32_MAX:.4g}): lower "
+                                     "the lights' intensities")
+    write_image(out, image.astype(np.float32))
     return 0
+
+
+def _unit_lights(scene):
+    """The scene with its light intensities divided by the largest, and that scale. Radiance is linear
+    in them: a float32 render of very bright lights then overflows only where the image itself would
+    (the 8-bit frame buffer of --quantize-bits is not linear: it renders as given)."""
+    peak = max(float(np.max(np.asarray(light.intensity))) for light in scene.lights)
+    if not peak > 0:
+        return scene, 1.0
+    unit = [jax.numpy.asarray(light.intensity) / peak for light in scene.lights]
+    return eqx.tree_at(lambda s: [light.intensity for light in s.lights], scene, unit), peak

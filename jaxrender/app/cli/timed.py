@@ -8,10 +8,12 @@ from collections.abc import Callable, Sequence
 
 from jaxrender.timing import time_calls
 
+from .arguments import count
+
 
 def add_time_argument(parser: argparse.ArgumentParser, what: str = "render") -> None:
     """`--time N`: after compiling, time N more runs (the render commands share this contract)."""
-    parser.add_argument("--time", type=int, default=0, metavar="N",
+    parser.add_argument("--time", type=count, default=0, metavar="N",
                         help=f"after compiling, {what} N more times and print compile_s=... median_frame_s=...")
 
 

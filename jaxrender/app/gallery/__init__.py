@@ -1,8 +1,9 @@
 """The gallery: the three showcase scenes and a BTF fit, rendered on built-in defaults into
 PNG/EXR files and one `index.html` that shows them with their parameters and timings.
 
-Each showcase provides `gallery_section(out_dir, *, quick=False) -> list[dict]`; an entry is
-{"title", "images" (paths relative to out_dir), "caption", "params", "timings"}.
+Each showcase provides `gallery_section(out_dir, *, quick=False)`, a generator that yields each
+entry once its files are written; an entry is {"title", "images" (paths relative to out_dir),
+"caption", "params", "timings"}.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import time
 import traceback
 from pathlib import Path
 
+from tqdm import tqdm
+
 from jaxrender.io import atomic_path
 
 SECTIONS = {
@@ -26,9 +29,10 @@ SECTIONS = {
 
 
 def render_gallery(out_dir: str | Path, *, sections: list[str] | None = None, quick: bool = False,
-                   log=print) -> dict:
+                   log=tqdm.write) -> dict:
     """Render the chosen sections (all by default) into `out_dir`; write `index.html` last.
 
+    Each entry is logged as it is written; on a terminal a bar counts the sections (none otherwise).
     Returns {"sections": {name: {"entries": [...], "seconds": float, "error": str | None}}}.
     A section that fails is reported on the page (with its traceback) and in the result; the
     others still render.
@@ -40,27 +44,33 @@ def render_gallery(out_dir: str | Path, *, sections: list[str] | None = None, qu
     if unknown:
         raise ValueError(f"unknown gallery sections {unknown}; choose from {list(SECTIONS)}")
     result = {"sections": {}, "quick": quick}
-    for name in names:
-        module_name, heading = SECTIONS[name]
-        log(f"[gallery] {name}: {heading} ...")
-        start = time.perf_counter()
-        try:
-            module = importlib.import_module(module_name)
-            entries = module.gallery_section(out_dir / name, quick=quick)
-            for entry in entries:  # entry image paths are relative to the section folder
-                entry["images"] = [f"{name}/{p}" for p in entry.get("images", [])]
-            error = None
-        except Exception:  # a broken section must not hide the others
-            entries, error = [], traceback.format_exc()
-            log(f"[gallery] {name} FAILED:\n{error}")
-        seconds = time.perf_counter() - start
-        log(f"[gallery] {name}: {len(entries)} entries in {seconds:.1f} s")
-        result["sections"][name] = {"heading": heading, "entries": entries, "seconds": seconds, "error": error}
+    with tqdm(total=len(names), desc="gallery", unit="section", disable=None) as bar:
+        for name in names:
+            result["sections"][name] = _render_section(name, out_dir, quick, log)
+            bar.update(1)
     with atomic_path(out_dir / "index.html") as tmp:
         tmp.write_text(_page(result))
     with atomic_path(out_dir / "gallery.json") as tmp:
         tmp.write_text(json.dumps(result, indent=2, default=str))
     return result
+
+
+def _render_section(name: str, out_dir: Path, quick: bool, log) -> dict:
+    module_name, heading = SECTIONS[name]
+    log(f"[gallery] {name}: {heading} ...")
+    start, entries, error = time.perf_counter(), [], None
+    try:
+        module = importlib.import_module(module_name)
+        for entry in module.gallery_section(out_dir / name, quick=quick):
+            entry["images"] = [f"{name}/{p}" for p in entry.get("images", [])]  # relative to the section folder
+            entries.append(entry)
+            log(f"[gallery] {name}: wrote {', '.join(entry['images'])} ({time.perf_counter() - start:.1f} s)")
+    except Exception:  # a broken section must not hide the others (nor the entries it already wrote)
+        error = traceback.format_exc()
+        log(f"[gallery] {name} FAILED:\n{error}")
+    seconds = time.perf_counter() - start
+    log(f"[gallery] {name}: {len(entries)} entries in {seconds:.1f} s")
+    return {"heading": heading, "entries": entries, "seconds": seconds, "error": error}
 
 
 def _table(values: dict) -> str:

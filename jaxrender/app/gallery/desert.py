@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ from jaxrender.io import write_exr, write_png
 from ..scenes.desert import render_desert, to_display
 
 
-def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
+def gallery_section(out_dir: Path, *, quick: bool = False) -> Iterator[dict]:
     """The paper's Figs. 12-18: without/with ripples, without/with dune shadows, without/with
     ripple shadows, with dust and footprints. Writes PNG + EXR files under `out_dir`."""
     out_dir = Path(out_dir)
@@ -34,7 +35,6 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
     ]
     if quick:  # every switch combination is its own compilation: quick mode shows two of them
         figures = [f for f in figures if f[0] in ("fig13_ripples", "fig18_dust")]
-    entries = []
     for name, title, kw in figures:
         params = dict(size, **scene_kw, **kw)
         if not quick:
@@ -46,7 +46,6 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
         when = "including compilation (quick mode)" if quick else "after compilation"
         caption = (f"{title}. {params['width']}x{params['height']}; frame {timing['frame_s']:.2f} s {when}; "
                    f"visible quads per ripple level (buffer capacities) {timing['capacities']}.")
-        entries.append({"title": title, "images": [f"{name}.png"], "caption": caption,
+        yield {"title": title, "images": [f"{name}.png"], "caption": caption,
                         "params": {k: v for k, v in params.items()},
-                        "timings": {"frame_s": timing["frame_s"], "plan_s": timing["plan_s"]}})
-    return entries
+                        "timings": {"frame_s": timing["frame_s"], "plan_s": timing["plan_s"]}}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import jax
@@ -23,7 +24,7 @@ from fitting import (
 from jaxrender.io import atomic_path, linear_to_srgb, tonemap, write_exr
 
 
-def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
+def gallery_section(out_dir: Path, *, quick: bool = False) -> Iterator[dict]:
     """Write `fitting_fit.png` (+ `fitting_relit_*.exr`) under `out_dir`; see the gallery contract."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -108,7 +109,7 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
                f"columns relight both under two held-out light directions (relative error "
                f"{', '.join(f'{x[4]:.3f}' for x in relit)}). Median normal error {np.median(ang):.2f} deg, median "
                f"sigma_x error {np.median(sig_err):.1%}, median rho_d error {np.median(rho_d_err):.4f}.")
-    return [{"title": "Fitting a BTF to a synthetic multi-light capture (paper 004)",
+    yield {"title": "Fitting a BTF to a synthetic multi-light capture (paper 004)",
              "images": [path.name], "caption": caption,
              "params": {"size": list(size), "lights": n_lights, "solver": "optimistix", "model": "reciprocal"},
-             "timings": {"synth_merge": round(synth_s, 2), "fit_incl_compile": round(fit_s, 2)}}]
+             "timings": {"synth_merge": round(synth_s, 2), "fit_incl_compile": round(fit_s, 2)}}

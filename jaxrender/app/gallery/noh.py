@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import jax
 import numpy as np
+from tqdm import tqdm
 
 from fitting import fit_capture, synth_capture
 from jaxrender.io import read_btf
@@ -16,7 +18,7 @@ from jaxrender.io import read_btf
 from ..scenes.noh import btf_levels_from_channels, default_btfs, render_noh, write_animation
 
 
-def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
+def gallery_section(out_dir: Path, *, quick: bool = False) -> Iterator[dict]:
     """The built-in Noh dance by firelight on the stage: frames + GIF + MP4 (+ EXR)."""
     out_dir = Path(out_dir)
     sub = out_dir / "noh"
@@ -26,13 +28,14 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
     timings: dict = {}
     t0 = time.perf_counter()
     btfs, source = _gallery_btfs(quick)
-    frames = render_noh(frames=frames_n, width=w, height=h, btfs=btfs, info=timings, **extra)
+    with tqdm(total=frames_n, desc="noh frames", unit="frame", leave=False, disable=None) as bar:
+        frames = render_noh(frames=frames_n, width=w, height=h, btfs=btfs, info=timings, progress=bar.update, **extra)
     paths = write_animation(sub, frames, exposure=timings["exposure"])
     total = time.perf_counter() - t0
     rel = [str(p.relative_to(out_dir)) for p in paths if p.suffix in (".png", ".gif", ".mp4")]
     frame_s = timings.get("frame_s") or [float("nan")]
     shown = [r for r in rel if r.endswith((".gif", ".mp4"))] + [rel[len(rel) // 2 - 1], rel[0]]
-    return [{"title": "Takigi Noh: a costumed performer on the Noh stage between bonfires (paper 004)",
+    yield {"title": "Takigi Noh: a costumed performer on the Noh stage between bonfires (paper 004)",
              "images": shown,
              "caption": ("The built-in Noh motion (kamae, three suriashi sliding steps, a slow turn, the right sleeve "
                          "raised before the face and lowered; a BVH motion through `jaxrender noh --motion`) drives "
@@ -46,7 +49,7 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
              "params": {"frames": frames_n, "width": w, "height": h, "k_env": 20, "k_fire": 20, "btfs": source,
                         "motion": "built-in (sims.noh_dance)"},
              "timings": {"total_s": total, "prepare_s": timings.get("prepare_s"),
-                         "first_frame_s": timings.get("compile_s"), "median_frame_s": float(np.median(frame_s))}}]
+                         "first_frame_s": timings.get("compile_s"), "median_frame_s": float(np.median(frame_s))}}
 
 
 def _gallery_btfs(quick: bool):

@@ -1,11 +1,12 @@
 """Gallery section of the stage (paper 000, Fig. 7): the float image by the default (equiangular)
 method, the paper's 8-bit sample planes, the ray march at the sample count where it reaches
-about 2 % relative RMS on this stage, and the stage in drifting ground fog (issue 24: a density
+about 2 % relative RMS on this stage, and the stage in drifting ground fog (a density
 grid that moves between the frames of an animated GIF)."""
 
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -55,66 +56,67 @@ def _fog_animation(out_dir: Path, scene, frames: int) -> tuple[list[str], dict]:
     return ["stage_fog.gif", names[0]], timings
 
 
-def gallery_section(out_dir: Path, *, quick: bool = False) -> list[dict]:
-    """Render the stage: equiangular (float), planes 30 x 6 in 8-bit, and a ray-marched comparison."""
+def gallery_section(out_dir: Path, *, quick: bool = False) -> Iterator[dict]:
+    """Render the stage: equiangular (float), planes 30 x 6 in 8-bit, a ray-marched comparison and
+    the stage in drifting ground fog; each entry is yielded once its files are written."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     width, height = (240, 160) if quick else (720, 480)
     scene = load_stage_scene(width=width, height=height)
+    params = {"size": f"{width}x{height}", "lights": len(scene.lights), "rho": 1.0, "kappa": 0.08, "K": 0.003}
     fast = jax.jit(lambda s: render_equiangular(s, samples=EQUIANGULAR_SAMPLES))
     img, c_e, t_e = _timed(fast, scene, 1 if quick else 3)  # the default method's frame: median of 3
+    _write(out_dir, "stage", img)
+    yield {"title": f"Stage, five spot lights (equiangular, {EQUIANGULAR_SAMPLES} samples, float)",
+           "images": ["stage.png"],
+           "caption": "Paper 000 Fig. 7: five spot lights, two with polka-dot light maps, shadow shafts behind the "
+                      "spheres. The default method: per pixel and light, samples equally spaced in the angle seen "
+                      "from the light (no 1/s^2 peak), one shadow-map and one light-map fetch each.",
+           "params": {**params, "method": "equiangular", "samples": EQUIANGULAR_SAMPLES},
+           "timings": {"compile_s": c_e, "frame_s": t_e, "per_light_s": t_e / len(scene.lights)}}
     # the two comparisons are timed by one frame each: at 3.4 and 5 s of CPU a frame, more repeats
     # would double the section's time for a figure benchmarks/shafts_interactive.py measures anyway
     if not quick:  # quick (tests): one compile fewer
         planes8 = jax.jit(lambda s: render_planes(s, planes=30, subplanes=6, quantize_bits=8))
         img8, c_8, t_8 = _timed(planes8, scene, 1)
+        _write(out_dir, "stage_planes_8bit", img8)
+        rms8 = float(np.sqrt(np.mean((img8 - np.clip(img, 0, 1)) ** 2)) * 255)
+        yield {"title": "The paper's method: sample planes 30 x 6, 8-bit hardware emulation",
+               "images": ["stage_planes_8bit.png"],
+               "caption": "Sample planes with sub-sample planes, tables of F and h on a 15x10 mesh; tables, light maps "
+                          "and frame buffer in 8-bit steps; RMS difference to the float image "
+                          f"{rms8:.2f} of 255 levels. Faint fog far from the lights adds less than half an 8-bit step "
+                          "per sample plane and so vanishes from the frame buffer, as on the paper's hardware: the "
+                          "shafts fade sooner than in the float image.",
+               "params": {**params, "method": "planes", "planes": 30, "subplanes": 6, "mesh": "15x10",
+                          "quantize_bits": 8},
+               "timings": {"compile_s": c_8, "frame_s": t_8}}
     march = jax.jit(lambda s: render_raymarch(s, samples=RAYMARCH_SAMPLES, batch_size=128))
     ref, c_r, t_r = _timed(march, scene, 1)
+    _write(out_dir, "stage_raymarch", ref)
     rel = float(np.linalg.norm(img - ref) / np.linalg.norm(ref))
-    outputs = [("stage", img), ("stage_raymarch", ref)] + ([] if quick else [("stage_planes_8bit", img8)])
-    for name, image in outputs:
-        write_image(out_dir / f"{name}.png", image, exposure=EXPOSURE)
-        write_exr(out_dir / f"{name}.exr", image)
+    yield {"title": f"Ray-marched reference ({RAYMARCH_SAMPLES} samples, shadow rays)",
+           "images": ["stage_raymarch.png"],
+           "caption": "The conventional method at the sample count where it reaches about 2 % on this stage: "
+                      f"relative RMS difference of the equiangular image to it {100 * rel:.1f} %.",
+           "params": {**params, "method": "raymarch", "samples": RAYMARCH_SAMPLES},
+           "timings": {"compile_s": c_r, "frame_s": t_r}}
     fog_frames = 3 if quick else FOG_FRAMES
     fog_images, fog_timings = _fog_animation(out_dir, scene, fog_frames)
-    params = {"size": f"{width}x{height}", "lights": len(scene.lights), "rho": 1.0, "kappa": 0.08, "K": 0.003}
-    entries = [
-        {"title": f"Stage, five spot lights (equiangular, {EQUIANGULAR_SAMPLES} samples, float)",
-         "images": ["stage.png"],
-         "caption": "Paper 000 Fig. 7: five spot lights, two with polka-dot light maps, shadow shafts behind the "
-                    "spheres. The default method: per pixel and light, samples equally spaced in the angle seen "
-                    "from the light (no 1/s^2 peak), one shadow-map and one light-map fetch each.",
-         "params": {**params, "method": "equiangular", "samples": EQUIANGULAR_SAMPLES},
-         "timings": {"compile_s": c_e, "frame_s": t_e, "per_light_s": t_e / len(scene.lights)}},
-        {"title": f"Ray-marched reference ({RAYMARCH_SAMPLES} samples, shadow rays)", "images": ["stage_raymarch.png"],
-         "caption": "The conventional method at the sample count where it reaches about 2 % on this stage: "
-                    f"relative RMS difference of the equiangular image to it {100 * rel:.1f} %.",
-         "params": {**params, "method": "raymarch", "samples": RAYMARCH_SAMPLES},
-         "timings": {"compile_s": c_r, "frame_s": t_r}},
-        {"title": f"Stage in drifting ground fog (density grid, {fog_frames} frames, equiangular)",
-         "images": fog_images,
-         "caption": ("Issue 24: fog whose density varies in space. A grid of "
-                     f"{GROUND_FOG_SHAPE[2]} x {GROUND_FOG_SHAPE[1]} x {GROUND_FOG_SHAPE[0]} voxels over the stage "
-                     "floor, dense at the floor and thinning upward, its rolling swells drifting across the stage "
-                     "through one loop. The beams light the fog bank and the spheres' shadow shafts cross it. "
-                     "Every frame the grid moves and the same compiled frame renders it: the light's transmittance "
-                     "through the grid comes from optical-depth volumes seen from each light and from the eye."),
-         "params": {**params, "method": "equiangular", "samples": FOG_SAMPLES, "grid": "x".join(
-             str(n) for n in GROUND_FOG_SHAPE[::-1]), "box": f"{GROUND_FOG_BOX[0]} - {GROUND_FOG_BOX[1]}",
-             "frames": fog_frames},
-         "timings": fog_timings},
-    ]
-    if not quick:
-        rms8 = float(np.sqrt(np.mean((img8 - np.clip(img, 0, 1)) ** 2)) * 255)
-        entries.insert(1, {"title": "The paper's method: sample planes 30 x 6, 8-bit hardware emulation",
-                           "images": ["stage_planes_8bit.png"],
-                           "caption": "Sample planes with sub-sample planes, tables of F and h on a 15x10 mesh; "
-                                      "tables, light maps and frame buffer in 8-bit steps; RMS difference to the float "
-                                      "image "
-                                      f"{rms8:.2f} of 255 levels. Faint fog far from the lights adds less than half "
-                                      "an 8-bit step per sample plane and so vanishes from the frame buffer, as on the "
-                                      "paper's hardware: the shafts fade sooner than in the float image.",
-                           "params": {**params, "method": "planes", "planes": 30, "subplanes": 6, "mesh": "15x10",
-                                      "quantize_bits": 8},
-                           "timings": {"compile_s": c_8, "frame_s": t_8}})
-    return entries
+    yield {"title": f"Stage in drifting ground fog (density grid, {fog_frames} frames, equiangular)",
+           "images": fog_images,
+           "caption": ("Fog whose density varies in space. A grid of "
+                       f"{GROUND_FOG_SHAPE[2]} x {GROUND_FOG_SHAPE[1]} x {GROUND_FOG_SHAPE[0]} voxels over the stage "
+                       "floor, dense at the floor and thinning upward, its rolling swells drifting across the stage "
+                       "through one loop. The beams light the fog bank and the spheres' shadow shafts cross it. "
+                       "Every frame the grid moves and the same compiled frame renders it: the light's transmittance "
+                       "through the grid comes from optical-depth volumes seen from each light and from the eye."),
+           "params": {**params, "method": "equiangular", "samples": FOG_SAMPLES, "grid": "x".join(
+               str(n) for n in GROUND_FOG_SHAPE[::-1]), "box": f"{GROUND_FOG_BOX[0]} - {GROUND_FOG_BOX[1]}",
+               "frames": fog_frames},
+           "timings": fog_timings}
+
+
+def _write(out_dir: Path, name: str, image) -> None:
+    write_image(out_dir / f"{name}.png", image, exposure=EXPOSURE)
+    write_exr(out_dir / f"{name}.exr", image)

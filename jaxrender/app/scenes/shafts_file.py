@@ -25,7 +25,7 @@ import numpy as np
 
 from jaxrender.camera import Camera
 from jaxrender.geometry import Quads, Spheres
-from jaxrender.io import Fields, InputError, read_image
+from jaxrender.io import FLOAT32_MAX, Fields, InputError, read_image
 from jaxrender.lights import SpotLight
 from jaxrender.shafts import DensityGrid, Medium, RenderSettings, ShaftsScene
 
@@ -64,7 +64,11 @@ def _look_at_ok(f: Fields, origin, target, up, *, origin_name: str, view_name: s
         f.problem("target", f"equals {origin_name}")
         return False
     if _parallel(up, target - origin):
-        f.problem("up", f"parallel to {view_name}")
+        if f.has("up"):
+            f.problem("up", f"parallel to {view_name}")
+        else:
+            f.problem("up", f"not given, and the default up [0, 1, 0] is parallel to {view_name}: give an up "
+                            "vector across it (e.g. [0, 0, 1])")
         return False
     return True
 
@@ -110,6 +114,10 @@ def _grid_values(f: Fields, base_dir: Path) -> np.ndarray | None:
         f.problem("grid", f"density grid {name!r} has {array.size} values, expected 1 to {MAX_VOXELS}")
         return None
     values = np.asarray(array, dtype=np.float64)
+    if np.any(np.abs(values[np.isfinite(values)]) > FLOAT32_MAX):
+        f.problem("grid", f"density grid {name!r} has values beyond float32's range (|x| <= {FLOAT32_MAX:.4g}), "
+                          "in which the toolkit computes")
+        return None
     if not np.all(np.isfinite(values)):
         f.problem("grid", f"density grid {name!r} has {int(np.count_nonzero(~np.isfinite(values)))} NaN or infinite "
                           "values")
@@ -140,6 +148,14 @@ def _medium(f: Fields, base_dir: Path) -> Medium | None:
     density = _density(f.section("density"), base_dir) if has_density else None
     if None in (rho, kappa, K) or (has_density and density is None):
         return None
+    # the coefficients the renderer forms (extinction rho kappa d, the phase function's peak 10 rho K d)
+    # must be float32 numbers too
+    peak = 1.0 if density is None else float(np.max(density.values))
+    for name, value in (("rho * kappa", rho * kappa * peak), ("10 * rho * K", 10 * rho * K * peak)):
+        if value > FLOAT32_MAX:
+            f.problem(None, f"{name}{' * the largest density' if density is not None else ''} = {value:.4g} is "
+                            f"beyond float32's range (|x| <= {FLOAT32_MAX:.4g}), in which the toolkit computes")
+            return None
     if 8 * math.pi * K > kappa:
         warnings.warn(f"{f.source}: medium: 8*pi*K = {8 * math.pi * K:.4g} > kappa = {kappa:.4g}: the fog scatters "
                       "more light than it extinguishes", ShaftsSceneWarning, stacklevel=3)
@@ -176,6 +192,9 @@ def _light_map(f: Fields, base_dir: Path) -> np.ndarray | None:
         image = read_image(path)
     except InputError as error:
         f.problem("light_map", f"cannot read light map {name!r} ({error.problem})")
+        return None
+    if not np.all(np.isfinite(image)):
+        f.problem("light_map", f"light map {name!r} has NaN or infinite values")
         return None
     if image.shape[2] == 1:
         image = np.repeat(image, 3, axis=2)
@@ -242,12 +261,12 @@ def shafts_scene_from_dict(d: Any, *, base_dir: str | os.PathLike = ".",
     doc.known(("camera", "medium", "render", "spotlights", "objects"))
     camera = _camera(doc.section("camera"))
     medium = _medium(doc.section("medium"), Path(base_dir))
-    render = _render(doc.section("render", required=False))
+    render = _render(doc.section("render", required=False, defaults=True))
     light_items = doc.items("spotlights")
     lights = [_spotlight(f, Path(base_dir)) for f in light_items]
     if doc.has("spotlights") and isinstance(doc.raw("spotlights"), list) and not doc.raw("spotlights"):
         doc.problem("spotlights", "at least one spot light is needed")
-    spheres, quads = _objects(doc.items("objects"))
+    spheres, quads = _objects(doc.items("objects", required=False))  # none: shafts in empty fog
     doc.problems.check()
     check_image_size(camera.width, camera.height, render.spp, source=source)
     return ShaftsScene(camera, medium, lights, spheres, quads, render, source=os.fspath(source))
@@ -257,6 +276,8 @@ def load_shafts_scene(path: str | os.PathLike) -> ShaftsScene:
     """Read and validate a light-shaft scene file (JSON, design.md); light maps and density grids
     are relative to it."""
     path = Path(path)
+    if path.is_dir():
+        raise InputError(path, "is a folder, not a scene file")
     if not path.is_file():
         raise InputError(path, "no such file")
     try:

@@ -3,7 +3,7 @@ spheres on a floor in front of a back wall.
 
 `stage_scene_dict()` is the built-in scene (design.md's scene-file format; light maps are the
 PNGs shipped in `jaxrender/data/`) and `load_stage_scene()` builds it (the gallery renders it:
-`jaxrender.app.gallery.stage`). `ground_fog(time)` is the stage's drifting ground fog (issue 24):
+`jaxrender.app.gallery.stage`). `ground_fog(time)` is the stage's drifting ground fog:
 a density grid over the stage floor whose pattern moves with `time`; `with_ground_fog(scene,
 time)` puts it into a loaded stage (same shapes every frame: one compilation for an animation).
 """

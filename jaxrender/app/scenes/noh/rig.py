@@ -120,7 +120,8 @@ def pow2(n: float) -> int:
 def pixel_box(bounds, ph: Pinhole, margin: float) -> tuple[int, int, int, int]:
     """The pixel rectangle (x0, y0, w, h) around `bounds` (x0, y0, x1, y1), `margin` x its size
     wider on every side, clipped to the image (the full image if it misses it)."""
-    x0, y0, x1, y1 = (float(b) for b in bounds)
+    # far beyond the image (a vertex near the camera's plane) or undefined: clipped, never an overflow
+    x0, y0, x1, y1 = np.clip(np.nan_to_num(np.asarray(bounds, np.float64), nan=0.0), -4.0 * ph.width, 4.0 * ph.width)
     mx, my = margin * (x1 - x0), margin * (y1 - y0)
     lo = (max(0, int(math.floor(x0 - mx))), max(0, int(math.floor(y0 - my))))
     hi = (min(ph.width, int(math.ceil(x1 + mx))), min(ph.height, int(math.ceil(y1 + my))))
@@ -325,15 +326,17 @@ def prepare_rig(scene: NohScene, *, key: PRNGKeyArray, k_env: int = 20, shadow_r
     # fixed sizes from frame 0, with margins for the motion; boxes from the whole path
     # the G-buffers' windows: most triangles in 16 pixels (the robe's are ~6-17 at 720 x 480), the
     # others of frame 0 (with margins for the motion) in a larger one
-    px_tri = np.asarray(px)[np.asarray(mesh.triangles)]
-    view_ext = np.max(np.ptp(px_tri, axis=1), axis=-1) + 2
+    # every size below from projections clipped to the image (or map): a vertex near a camera's plane
+    # projects arbitrarily far, but a buffer never needs more than the image's pixels
+    image = np.asarray([w, h], np.float64)
+    px = np.clip(np.nan_to_num(np.asarray(px, np.float64), nan=0.0), 0.0, image)
+    view_ext = np.max(np.ptp(px[np.asarray(mesh.triangles)], axis=1), axis=-1) + 2
     window = 16
     large_view_window = pow2(max(2 * window, 1.5 * float(view_ext.max())))
     large_view_capacity = round_up(2 * int(np.sum(view_ext > window)) + 64, 64)
     corners = np.asarray([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
     view_box = pixel_box(_project_bounds(ph, corners), ph, 0.02)
     mirror_box = pixel_box(_project_bounds(ph, corners * np.asarray([1.0, -1.0, 1.0])), ph, 0.02)
-    px = np.asarray(px)
     covered = float(np.ptp(px[:, 0]) * np.ptp(px[:, 1]))
     # the depth maps' windows: most triangles in 1/32 of the map's side, the larger ones of frame 0
     # (with margins for the motion) in their own window (`motion.fire_depth_maps`)
@@ -343,6 +346,7 @@ def prepare_rig(scene: NohScene, *, key: PRNGKeyArray, k_env: int = 20, shadow_r
     for q in range(len(centers)):
         local = (verts - light_pos[q]) @ light_rot[q].T
         sp = (local[:, :2] / np.maximum(local[:, 2:3], 1e-6) / (2 * tan_c) + 0.5) * shadow_resolution
+        sp = np.clip(np.nan_to_num(sp, nan=0.0), 0.0, shadow_resolution)
         ext = np.max(np.ptp(sp[tris], axis=1), axis=-1) + 2
         largest, most = max(largest, float(ext.max())), max(most, int(np.sum(ext > shadow_window)))
     steps = max(1, int(round(frame_dt / scene.performer.costume.dt)))

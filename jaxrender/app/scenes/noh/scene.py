@@ -16,7 +16,7 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray
 from jaxrender.brdf import BTFTexel
 from jaxrender.camera import Camera
 from jaxrender.fabric import MaterialSet, stack_materials
-from jaxrender.io import BVHMotion
+from jaxrender.io import BVHMotion, InputError
 from jaxrender.lights import EnvMap, QuadLights
 from jaxrender.maths import default_float
 from sims import SkeletonMotion, fire_frames, noh_dance, place_motion, pose_motion
@@ -29,6 +29,7 @@ from .performer import PerformerRig, body_page, performer_rig
 from .stage import FIRE_SITES, FLAME_BASE, FLAME_SIZE, StageGeometry, build_stage
 
 STAGE_SPOT = (0.0, 0.6)                               # where the performer's path is centred (x, z)
+MAX_REACH = 20.0   # m: the farthest a joint may be from the path's centre (the stage is about 6 m across)
 CAMERA = ((2.0, 1.6, 7.2), (-0.45, 1.1, -0.2), 40.0)   # eye, target, vertical field of view (deg)
 ATLAS = 512                                           # each texture page's side (texels)
 SKY_IRRADIANCE = 0.02                                 # the dusk sky on the open ground (the bonfires dominate)
@@ -75,7 +76,22 @@ def stage_motion(bvh: BVHMotion, *, duration: float, source=None) -> tuple[Skele
     feet = [i for i, n in enumerate(volumes.names) if n.startswith(("foot", "toes", "shin"))]
     lowest = float(np.min(np.minimum(a[feet, 1], b[feet, 1]) - np.asarray(volumes.radius)[feet]))
     shift = (STAGE_SPOT[0] - centre[0], 0.004 - lowest, STAGE_SPOT[1] - centre[2])
-    return place_motion(turned, yaw=0.0, shift=shift), joints
+    placed = place_motion(turned, yaw=0.0, shift=shift)
+    _check_reach(placed, bvh.names, used, source)
+    return placed, joints
+
+
+def _check_reach(motion: SkeletonMotion, names, used: int, source) -> None:
+    """A motion whose joints leave the stage (a joint flung metres away: a file whose channels mean
+    something else) is refused: it cannot be danced there, and no frame buffer could hold it."""
+    p = np.asarray(motion.positions[:used], np.float64)
+    spot = np.asarray([STAGE_SPOT[0], 0.0, STAGE_SPOT[1]])
+    reach = np.linalg.norm(np.nan_to_num(p - spot, nan=np.inf), axis=-1)
+    frame, joint = np.unravel_index(np.argmax(reach), reach.shape)
+    if not reach[frame, joint] <= MAX_REACH:
+        raise InputError(source, f"joint {names[joint]!r} is {reach[frame, joint]:.3g} m from the middle of the stage "
+                                 f"at frame {frame} (in metres as read: the Noh stage holds a performer within "
+                                 f"{MAX_REACH:g} m)")
 
 
 def noh_scene(*, width: int = 720, height: int = 480, frames: int = 20, key: PRNGKeyArray | None = None,
