@@ -59,7 +59,7 @@ def _figures(folder: Path, tmp: Path) -> dict:
     truth = read_normal_map(folder / "Normal_gt.mat")[::STRIDE, ::STRIDE]
     fitted, held = heldout_split(obs.n_lights, 6)
     train, test = select_lights(obs, fitted), select_lights(obs, held)
-    maps = fitting.fit_maps(train, chunk=CHUNK, progress=False)
+    maps = fitting.fit_maps(train, fitting.FitSettings(chunk=CHUNK), progress=False)
     texels = jax.tree.map(jnp.asarray, maps).texel()
     predicted = jnp.stack([fitting.relight(texels, d, obs.view_dir) for d in np.asarray(test.light_dirs)], axis=2)
     lambert = lambertian_fit(train)
