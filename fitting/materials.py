@@ -17,7 +17,7 @@ few materials, so the lobe is estimated where the data pin it and lent where the
 
 The table (a few rows) is the only global state: every tile of the fit gets it, and each texel
 takes the prior of its own material (`fitting.lm.MaterialTable`). Reasoning: docs/fitting.md,
-"Real captures: the robust method"; figures: benchmarks/RESULTS.md, "Fitting real captures (issue 23)".
+"Real captures: the robust method"; figures: benchmarks/RESULTS.md, "Fitting woven fabric (paper 004)".
 """
 
 from __future__ import annotations

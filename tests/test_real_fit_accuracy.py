@@ -1,4 +1,4 @@
-"""Real-data accuracy of the default fit (issue 23): two DiLiGenT objects, every 4th row and column,
+"""Real-data accuracy of the default fit: two DiLiGenT objects, every 4th row and column,
 every 6th light held out. Normals against the laser scan (mean angular error over the mask) and the
 held-out photographs predicted against the least-squares Lambertian fit of the same lights
 (`fitting.evaluate`, an independent closed form). One compilation: both objects are fitted in
