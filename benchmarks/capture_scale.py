@@ -146,11 +146,11 @@ def measure(name: str, cmd: list[str], env: dict) -> dict:
 
 IN_MEMORY = """
 import sys, time
-from fitting import fit_observations, load_capture, merge_capture
+from fitting import FitSettings, fit_observations, load_capture, merge_capture
 t0 = time.perf_counter()
 obs = merge_capture(load_capture(sys.argv[1]), progress=False)
 print("merge_s", time.perf_counter() - t0)
-fit_observations(obs, sys.argv[2], chunk=4096, pyramid=False, progress=False)
+fit_observations(obs, sys.argv[2], FitSettings(method="plain"), pyramid=False, progress=False)
 """
 
 
@@ -158,18 +158,19 @@ RATE = """
 import json, sys, time
 import numpy as np
 from fitting import load_capture, merge_capture, open_store
-from fitting.fit import fit_maps
-from fitting.tiles import fit_store_maps
+from fitting import FitSettings
+from fitting.fit import fit_maps, fit_store_maps
+PLAIN = FitSettings(method="plain")
 obs = merge_capture(load_capture(sys.argv[1]), progress=False)
 store = open_store(sys.argv[2])
-fit_maps(obs, chunk=4096, progress=False, method="plain")  # compile (or load) the tile program once
+fit_maps(obs, PLAIN, progress=False)  # compile (or load) the tile program once
 out = {"in-memory": [], "store": []}
 for rep, path in enumerate(["in-memory", "store", "store", "in-memory", "in-memory", "store"]):
     t0, c0 = time.perf_counter(), time.process_time()
     if path == "store":
-        maps = fit_store_maps(store, partial_dir=sys.argv[3] + f"/partial{rep}", progress=False, method="plain")
+        maps = fit_store_maps(store, PLAIN, partial_dir=sys.argv[3] + f"/partial{rep}", progress=False)
     else:
-        maps = fit_maps(obs, chunk=4096, progress=False, method="plain")
+        maps = fit_maps(obs, PLAIN, progress=False)
     out[path].append([time.perf_counter() - t0, time.process_time() - c0])
     out.setdefault("maps_" + path, maps.rho_d)
 same = np.array_equal(out.pop("maps_store"), out.pop("maps_in-memory"))

@@ -54,7 +54,13 @@ from _compare import Stats, load  # noqa: E402
 from _compare import ratio as speed_ratio  # noqa: E402
 from _fit_varpro_scipy import varpro_fit  # noqa: E402
 
-from fitting import LIGHT_DIRECTIONS, stratified_light_subset, synth_maps, synth_observations  # noqa: E402
+from fitting import (  # noqa: E402
+    LIGHT_DIRECTIONS,
+    FitSettings,  # noqa: E402
+    stratified_light_subset,
+    synth_maps,
+    synth_observations,
+)
 from fitting.fit import fit_maps  # noqa: E402
 from fitting.lm import basis, initial_theta, project_rho, texel_cost, theta_to_geometry  # noqa: E402
 from jaxrender.brdf import SIGMA_FLOOR  # noqa: E402
@@ -141,7 +147,7 @@ def compile_fit(obs, solver, chunk) -> float:
                     n_valid=obs.n_valid.reshape(-1)[:first][None],
                     n_saturated=obs.n_saturated.reshape(-1)[:first][None],
                     n_dark=obs.n_dark.reshape(-1)[:first][None])
-    fit_maps(sub, solver=solver, chunk=chunk, progress=False, method="plain")
+    fit_maps(sub, FitSettings(method="plain", solver=solver, chunk=chunk), progress=False)
     return time.perf_counter() - t0
 
 
@@ -225,7 +231,7 @@ def main(argv=None) -> dict:
         def run(name):
             t0, c0 = time.perf_counter(), time.process_time()
             if name in solvers:
-                maps[name] = fit_maps(obs, solver=name, chunk=args.chunk, progress=False, method="plain")
+                maps[name] = fit_maps(obs, FitSettings(method="plain", solver=name, chunk=args.chunk), progress=False)
                 jax.block_until_ready(maps[name].rho_d)
                 worker_cpu = 0.0
             else:

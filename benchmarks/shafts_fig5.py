@@ -20,9 +20,37 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _shafts_common as C  # noqa: E402
+from _results import write_results  # noqa: E402
 
 SUBPLANES = [1, 2, 3, 4, 6, 8, 12, 16, 25]
 SUBPLANES_QUICK = [1, 6]  # fig. 6 shows m = 1 and 6; each count is a compile
+
+
+def fig5_row(counts, rms8, rms8_lit, cpus, size, figures) -> dict:
+    """The result row. The paper's fig. 5: the 8-bit error falls as sub-planes are added and drops below
+    1 level at m = 6 (so m = 6 is its choice). Reproduced if our error never grows with m and first
+    drops below 1 level at m = 6; partly if it falls and is below 1 level at m = 6 but already
+    was with fewer sub-planes (milder aliasing than the paper's); not reproduced otherwise."""
+    xs = counts[:-1]  # the last count is the reference
+    falls = all(rms8[a] >= rms8[b] for a, b in zip(xs, xs[1:]))
+    first = next((m for m in xs if rms8[m] < 1.0), None)
+    if falls and first == 6:
+        status = "reproduced"
+    elif falls and first is not None and first < 6:
+        status = f"partly reproduced (the error falls with m, but is below 1 level from m = {first}, not 6)"
+    else:
+        status = "not reproduced"
+    show = [m for m in (1, 2, 4, 6, 12) if m in rms8]
+    return dict(area="shafts", target="paper fig. 5: 8-bit error falls with sub-planes, below 1 level from m = 6",
+                measured=f"RMS to m = {counts[-1]}: " + " / ".join(f"{rms8[m]:.2f}" for m in show)
+                         + f" levels at m = {' / '.join(map(str, show))} (lit pixels: "
+                         + " / ".join(f"{rms8_lit[m]:.2f}" for m in show) + ")",
+                status=status,
+                notes=f"n = 30 planes, {size[0]}x{size[1]}, fig. 6 scene; CPU s per frame "
+                      + " / ".join(f"{cpus[m]:.3f}" for m in show) + " at the same m (paper: 0.17 s at m = 6); figures "
+                      + ", ".join(str(f.relative_to(C.REPO)) for f in figures),
+                figures={"subplanes": counts, "rms8_levels": [rms8[m] for m in counts],
+                         "rms8_lit_levels": [rms8_lit[m] for m in counts], "cpu8_s": [cpus[m] for m in counts]})
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -104,6 +132,7 @@ def main(argv: list[str] | None = None) -> dict:
         a.axis("off")
     path6 = C.save_figure(fig, "shafts_fig6.png", quick=args.quick)
     print(f"figure: {path6.relative_to(C.REPO)}")
+    write_results("shafts_fig5", [fig5_row(counts, rms8, rms8_lit, cpus, (w, h), (path, path6))], quick=args.quick)
     return {"subplanes": counts, "rms8": rms8, "rms8_lit": rms8_lit, "rmsf": rmsf, "time8": times8, "cpu8": cpus}
 
 

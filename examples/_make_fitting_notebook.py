@@ -34,7 +34,7 @@ print(obs.ratio.shape, "valid observations per texel:", int(np.median(obs.n_vali
 rho_s are solved in closed form inside the solver (variable projection); the solver sees the normal
 and the two slopes."""),
     nbf.v4.new_code_cell("""t0 = time.perf_counter()
-maps = fitting.fit_maps(obs, chunk=256, progress=False)
+maps = fitting.fit_maps(obs, fitting.FitSettings(chunk=256), progress=False)
 print(f"fit (incl. compilation): {time.perf_counter() - t0:.1f} s, converged {np.mean(maps.converged):.1%}")
 n_t, n_f = np.asarray(truth.lobe0.normal), maps.normal
 normal_err = np.degrees(np.arccos(np.clip(np.sum(n_t * n_f, -1), -1, 1)))

@@ -11,8 +11,10 @@ from .em import em_texels as em_texels
 from .em import mip_texel as mip_texel
 from .em import moment_matched_texel as moment_matched_texel
 from .em import moment_matched_texels as moment_matched_texels
+from .fit import fit_capture as fit_capture
 from .fit import fit_maps as fit_maps
 from .fit import fit_observations as fit_observations
+from .fit import fit_store as fit_store
 from .hdr import Observations as Observations
 from .hdr import merge_capture as merge_capture
 from .hdr import merge_exposures as merge_exposures
@@ -23,11 +25,13 @@ from .lm import fit_texels as fit_texels
 from .lm import texel_cost as texel_cost
 from .manifest import write_folder_manifest as write_folder_manifest
 from .manifest import write_manifest as write_manifest
+from .materials import MaterialTable as MaterialTable
 from .pyramid import build_pyramid as build_pyramid
 from .pyramid import pyramid_levels as pyramid_levels
 from .report import fit_report as fit_report
 from .report import relight as relight
 from .report import relight_errors as relight_errors
+from .settings import FitSettings as FitSettings
 from .store import open_store as open_store
 from .synth import EXPOSURES_S as EXPOSURES_S
 from .synth import LIGHT_DIRECTIONS as LIGHT_DIRECTIONS
@@ -38,5 +42,3 @@ from .synth import stratified_light_subset as stratified_light_subset
 from .synth import synth_capture as synth_capture
 from .synth import synth_maps as synth_maps
 from .synth import synth_observations as synth_observations
-from .tiles import fit_capture as fit_capture
-from .tiles import fit_store as fit_store

@@ -218,11 +218,6 @@ def _ingest(capture_dir, store_dir: Path, *, dtype, memory_gb, tile, light_block
     from tqdm.auto import tqdm
 
     capture = load_capture(capture_dir, headers_only=True, workers=workers)
-    n_exp = len(capture.exposures_s)
-    block = min(light_block or light_block_for(capture.size, n_exp, memory_gb), capture.n_lights)
-    tile = min(tile, capture.size[0] * capture.size[1])
-    settings = _settings(dtype, tile, block)
-    fingerprint_ = _capture_fingerprint(capture, settings)
     pool = concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers))
     prefetch = concurrent.futures.ThreadPoolExecutor(max_workers=1)  # apart from `pool`: no deadlock
     state = None
@@ -234,6 +229,11 @@ def _ingest(capture_dir, store_dir: Path, *, dtype, memory_gb, tile, light_block
         mask_problems = [] if capture.mask is None else capture.read_checked(capture.mask)[1]
         if mask_problems:
             raise CaptureError(mask_problems)
+        n_exp = len(capture.exposures_s)
+        block = min(light_block or light_block_for(capture.size, n_exp, memory_gb), capture.n_lights)
+        tile = min(tile, capture.size[0] * capture.size[1])
+        settings = _settings(dtype, tile, block)
+        fingerprint_ = _capture_fingerprint(capture, settings)
         state = _start(store_dir, fingerprint_)
         _remove_leftovers(store_dir)
         if state == "done":   # complete: rewrite what the file listing shows damaged, if anything
@@ -272,15 +272,19 @@ def _ingest(capture_dir, store_dir: Path, *, dtype, memory_gb, tile, light_block
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def repair_store(store: ObservationStore, damage: list[ChunkDamage], *, progress: bool | None = False,
+def repair_store(store: ObservationStore, damage: list[ChunkDamage] | None = None, *, progress: bool | None = False,
                  workers: int = 4) -> None:
     """Write again every light block holding a damaged chunk of `ratio` or `flags`, from the store's
-    capture, then the counts from the flags (`fitting.store.StoreDamaged` lists the damage). The merge
+    capture, then the counts from the flags (`damage`: what `fitting.store.StoreDamaged` lists; None:
+    the chunks the file listing shows missing or truncated, `ObservationStore.scan`). The merge
     is deterministic: the blocks come back bit for bit. Raises `StoreDamaged` naming the chunk when a
     block is damaged and the capture is no longer at hand or has changed since the ingest (its
     fingerprint differs). Holds the store's lock while it writes."""
     from tqdm.auto import tqdm
 
+    damage = store.scan() if damage is None else damage
+    if not damage:
+        return
     if all(d.array == "counts" for d in damage):   # only counts: they come from the flags
         with output_lock(store.path):
             _write_counts(store.path)

@@ -1,23 +1,24 @@
 """Per-texel Levenberg-Marquardt fit of the anisotropic model (paper 004 eq. 1, design.md):
 rho_d and rho_s eliminated by variable projection (`fitting._varpro`), the normal and two slopes
-fitted by optimistix's LM (default), jaxopt's or a native loop, from photometric-stereo and
-brightest-highlight starts. The parametrization, the objective and the starts: docs/fitting.md,
-"The per-texel fit".
+fitted by one of the backends (`BACKENDS`: `fitting.lm_optimistix`, the default, `lm_jaxopt`,
+`lm_native`) from photometric-stereo and brightest-highlight starts; the robust method's material
+start, reweighted geometry rounds and appearance round. The parametrization, the objective and
+the starts: docs/fitting.md, "The per-texel fit".
 """
 
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxrender.brdf import MODELS, BTFTexel, reflectance, tangent_frame
+from jaxrender.brdf import BTFTexel, reflectance, tangent_frame
 from jaxrender.maths import normalize
 
+from . import lm_jaxopt, lm_native, lm_optimistix
 from ._varpro import (
     RIDGE,
     S_MAX,
@@ -27,7 +28,6 @@ from ._varpro import (
     centre,
     columns,
     columns_from_frame,
-    gauss_newton,
     geometry_to_theta,
     lights_of,
     project_rho_columns,
@@ -35,15 +35,20 @@ from ._varpro import (
     projected_cost_offset_and_rho_d,
     theta_to_geometry,
 )
+from .lanes import solve_in_lanes
+from .materials import COLOUR_EPS, MaterialTable, material_priors, no_materials
+from .residual import Problem, Stage, VarProResidual, chol_solve
+from .settings import FitSettings
 
-__all__ = ["TexelFit", "MaterialTable", "SOLVERS", "fit_texels", "fit_texel", "initial_theta", "theta_to_geometry",
-           "geometry_to_theta", "basis", "project_rho", "texel_cost", "texel_residuals",
-           "default_tolerances", "DEFAULT_SOLVER", "S_MIN", "S_MAX", "SIGMA_STARTS"]
+__all__ = ["TexelFit", "fit_texels", "fit_texel", "initial_theta", "theta_to_geometry", "geometry_to_theta", "basis",
+           "project_rho", "texel_cost", "texel_residuals", "default_tolerances", "BACKENDS", "STEPPING", "S_MIN",
+           "S_MAX", "SIGMA_STARTS", "ROBUST_ROUNDS"]
 
-SOLVERS = ("native", "optimistix", "jaxopt")
-DEFAULT_SOLVER = "optimistix"
+BACKENDS = {"optimistix": lm_optimistix.solve, "jaxopt": lm_jaxopt.solve, "native": lm_native.solve}
+# backends that step: a batch is solved in lanes (`fitting.lanes`); the others texel by texel
+STEPPING = {"native": lm_native.Steps, "optimistix": lm_optimistix.Steps}
 SIGMA_STARTS = (0.03, 0.1, 0.3)
-DEFAULT_MAX_STEPS = 40
+ROBUST_ROUNDS = 2   # reweighted geometry solves of the robust method, before its appearance solve
 _ALIGN = 16   # float32 lanes of a 64-byte vector
 
 
@@ -67,46 +72,8 @@ class TexelFit(eqx.Module):
         return BTFTexel.single(self.rho_d, self.rho_s, self.normal, self.sigma_x, self.sigma_y)
 
 
-# The priors a `MaterialTable` gives a texel (one setting for every capture): log-slopes within
-# TAU_LOG_SLOPE of the material's (a factor e^0.35 = 1.4 at one standard deviation), rho_s within
-# TAU_RHO_REL of the material's plus TAU_RHO_FLOOR of the texel's RMS observation (so a material
-# without a lobe still lets a texel's lobe through where its data pin it).
-TAU_LOG_SLOPE = 0.35
-TAU_RHO_REL = 0.35
-TAU_RHO_FLOOR = 0.05
 DIM_FRACTION = 0.08
 ROBUST_SCALE = 2.5  # Cauchy weights: an observation ROBUST_SCALE times the median residual off weighs 1/2
-COLOUR_EPS = 1e-3   # log(rho_d + eps): the colour a texel's material is recognised by
-
-
-class MaterialTable(eqx.Module):
-    """Materials shared by the texels of a capture (estimated by `fitting.materials`): per row
-    the centre of a Gaussian prior on a texel's lobe, and the capture's noise level.
-
-    A texel fitted with a table takes the prior of the row that explains its start best (the
-    MAP class: projected objective plus the row's log share); the prior's weights are the noise
-    variance (`noise` times the texel's mean squared observation) over the prior's variance.
-    Rows with `log_share` = -inf are unused (tables are padded to one shape)."""
-
-    rho_s: Float[Array, "M 3"]
-    s: Float[Array, "M 2"]         # the solver's log-slopes (`geometry_to_theta`) of the material's lobe
-    log_share: Float[Array, " M"]  # log of the fraction of the sample's texels in the material
-    colour: Float[Array, "M 3"]    # mean log(rho_d + COLOUR_EPS) of the material's texels
-    colour_spread: Float[Array, " M"]   # their standard deviation (per channel, pooled)
-    noise: Float[Array, ""]        # residual variance of the sample's fits / their mean squared observation
-
-    @property
-    def size(self) -> int:
-        return int(self.rho_s.shape[0])
-
-
-def _material_priors(table: MaterialTable, mean_sq: Float[Array, ""]) -> Prior:
-    """The `M` priors of a table for a texel of mean squared observation `mean_sq` (stacked)."""
-    var = table.noise * mean_sq
-    tau_rho = TAU_RHO_REL * jnp.mean(table.rho_s, axis=-1) + TAU_RHO_FLOOR * jnp.sqrt(mean_sq)
-    rho_weight = var / jnp.maximum(tau_rho * tau_rho, jnp.finfo(mean_sq.dtype).tiny)
-    s_weight = jnp.broadcast_to(var / TAU_LOG_SLOPE**2, rho_weight.shape)
-    return Prior(table.rho_s, rho_weight, table.s, s_weight)
 
 
 def default_tolerances(dtype) -> tuple[float, float]:
@@ -167,116 +134,6 @@ def texel_cost(rho_d, rho_s, normal, sigma_x, sigma_y, ratio, weight, light_dirs
     return 0.5 * jnp.sum(r * r)
 
 
-def _cholesky(a):
-    """Lower Cholesky factor of a small symmetric positive definite matrix, unrolled: scalar
-    operations only, which vmapped over texels are elementwise array ops (much faster on XLA:CPU
-    than batched LAPACK calls on tiny matrices). Pivots are floored at `tiny`."""
-    n = a.shape[0]
-    low = [[jnp.zeros((), a.dtype)] * n for _ in range(n)]
-    tiny = jnp.finfo(a.dtype).tiny
-    for i in range(n):
-        for j in range(i + 1):
-            s = a[i, j]
-            for k in range(j):
-                s = s - low[i][k] * low[j][k]
-            low[i][j] = jnp.sqrt(jnp.maximum(s, tiny)) if i == j else s / low[j][j]
-    return jnp.stack([jnp.stack(row) for row in low])
-
-
-def _forward_sub(low, b):
-    n = low.shape[0]
-    y = []
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s = s - low[i, k] * y[k]
-        y.append(s / low[i, i])
-    return jnp.stack(y)
-
-
-def _chol_solve(a, b):
-    """Solve a x = b for a small symmetric positive definite `a` (unrolled, see `_cholesky`)."""
-    low = _cholesky(a)
-    return _forward_sub(low.T[::-1, ::-1], _forward_sub(low, b)[::-1])[::-1]
-
-
-class Stage(NamedTuple):
-    """What a solve of a real-capture fit (`fit_texel`'s rounds) fits: `ambient` 1/0 (a constant
-    per channel projected out, `fitting._varpro.centre`) and `free` (4: 1 where the parameter
-    moves, 0 where it is held)."""
-
-    ambient: Float[Array, ""]
-    free: Float[Array, "4"]
-
-
-def _staged(gn, stage: Stage | None):
-    """(objective, gradient, Gauss-Newton matrix) with the held parameters' rows and columns of
-    the matrix replaced by the identity and their gradient by 0: a damped step leaves them."""
-    if stage is None:
-        return gn.objective, gn.grad, gn.matrix
-    f = stage.free
-    return gn.objective, f * gn.grad, jnp.outer(f, f) * gn.matrix + jnp.diag(1.0 - f)
-
-
-def _ambient(stage: Stage | None):
-    return None if stage is None else stage.ambient
-
-
-def _compress(theta, args, model):
-    """(r, J): a 5-residual problem with the same value and Gauss-Newton model as the projected fit.
-
-    With objective c, gradient g and Gauss-Newton matrix M of the projected fit (`gauss_newton`, one
-    pass over the lights) and M = L L^T: J = L^T and r = (L^-1 g, sqrt(2c - |L^-1 g|^2)) give
-    0.5 |r|^2 = c, J^T r = g and J^T J = M, so 0.5 |r + J d|^2 is the projected fit's own
-    Gauss-Newton model in d (J's fifth row is 0). (This is the QR compression of least squares: the 3L residuals and
-    their `3L x 4` Jacobian are replaced by 5 numbers and a 4 x 4 triangle.) M is lifted by 1e-7 of
-    its mean diagonal to stay definite where a parameter has no effect (a black texel).
-    """
-    ratio_cl, w, lights, prior, stage = args
-    objective, grad, m = _staged(gauss_newton(theta, ratio_cl, w, lights, model, prior, ambient=_ambient(stage)), stage)
-    dt = m.dtype
-    lift = 1e-7 * jnp.trace(m) / 4 + jnp.finfo(dt).tiny ** 0.5
-    low = _cholesky(m + lift * jnp.eye(4, dtype=dt))
-    r_lin = _forward_sub(low, grad)
-    two_c = 2 * objective
-    lin2 = jnp.sum(r_lin * r_lin)
-    # |L^-1 g|^2 <= 2c in exact arithmetic (a projection of the residual); keep 0.5 |r|^2 = c under rounding
-    r_lin = r_lin * jnp.where(lin2 > two_c, jnp.sqrt(two_c / jnp.where(lin2 > 0, lin2, 1.0)), 1.0)
-    rest = jnp.sqrt(jnp.maximum(two_c - jnp.sum(r_lin * r_lin), 0.0))
-    r = jnp.concatenate([r_lin, rest[None]])
-    jac = jnp.concatenate([low.T, jnp.zeros((1, 4), dt)])
-    # Any orthogonal map of (r, J) keeps the model; this reflection spreads the large `rest` over
-    # all five components so that optimistix's per-component test of the change in r (relative
-    # to |r_i|) sees no component that is zero at the optimum (as L^-1 g is) and only rounding.
-    v = jnp.full((5,), -1 / 5**0.5, dt).at[4].add(1.0)   # e5 - u, u = (1, 1, 1, 1, 1) / sqrt(5)
-    reflect = jnp.eye(5, dtype=dt) - 2 * jnp.outer(v, v) / jnp.sum(v * v)
-    return reflect @ r, reflect @ jac
-
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
-def _residual(theta, args, model):
-    return _compress(theta, args, model)[0]
-
-
-@_residual.defjvp
-def _residual_jvp(model, primals, tangents):
-    """The tangent J d of the compressed residual (`_compress`); the observations (`args`) are
-    data, not parameters: their tangents are ignored."""
-    theta, args = primals
-    d_theta, _ = tangents
-    r, jac = _compress(theta, args, model)
-    return r, jac @ d_theta
-
-
-class _VarProResidual(eqx.Module):
-    """theta -> the compressed residual of the projected fit (`_compress`): the solvers' residual."""
-
-    model: str = eqx.field(static=True)
-
-    def __call__(self, theta, args):
-        return _residual(theta, args, self.model)
-
-
 # ---------------------------------------------------------------------------------------------
 # starting values
 
@@ -292,7 +149,7 @@ def _photometric_stereo(ratio_cl: Float[Array, "3 L"], w: Float[Array, " L"], li
         u = jnp.where(use, w, 0.0)
         a = jnp.stack([jnp.stack([jnp.sum(u * l[i] * l[j]) for j in range(3)]) for i in range(3)])
         a = a + (1e-6 * jnp.trace(a) + jnp.finfo(dt).tiny ** 0.5) * jnp.eye(3, dtype=dt)
-        g = _chol_solve(a, jnp.stack([jnp.sum(l[i] * u * y) for i in range(3)]))
+        g = chol_solve(a, jnp.stack([jnp.sum(l[i] * u * y) for i in range(3)]))
         pred = l[0] * g[0] + l[1] * g[1] + l[2] * g[2]
         e = y - pred
         scale = jnp.sqrt(jnp.sum(u * e * e) / jnp.maximum(jnp.sum(u), 1e-30))
@@ -329,7 +186,7 @@ def _material_start(ratio_cl, w, lights, model, table: MaterialTable, ambient=No
     dt = ratio_cl.dtype
     sq = ratio_cl[0] ** 2 + ratio_cl[1] ** 2 + ratio_cl[2] ** 2
     mean_sq = jnp.sum(w * sq) / (3 * jnp.maximum(jnp.sum(w), 1e-30))
-    priors = _material_priors(table, mean_sq)
+    priors = material_priors(table, mean_sq)
     normals = jnp.stack(_start_normals(ratio_cl, w, lights))
 
     def row_score(prior, colour, spread):
@@ -369,142 +226,7 @@ def _initial_theta(ratio_cl, w, lights, model, prior: Prior | None = None, norma
 
 
 # ---------------------------------------------------------------------------------------------
-# the solve
-
-def _rounding_floor(dt, rtol: float) -> float:
-    """Relative change of the cost below which a step cannot be told from rounding."""
-    return max(rtol * rtol, 8 * float(jnp.finfo(dt).eps))
-
-
-@functools.cache
-def _optimistix_lm():
-    """optimistix's Levenberg-Marquardt (damped Newton descent in a classical trust region), its
-    trust region told the cost's rounding level.
-
-    At the optimum of a float32 fit the cost is known to ~1e-7 relative: a trial step whose
-    predicted and actual changes are both below that is rejected by the classical ratio test
-    (0 / tiny), the region shrinks and the solve runs to max_steps at the minimum, reporting
-    failure. Here such a step is accepted, so optimistix's own termination test (small change of
-    y and of the residuals) decides, as it does on every accepted step.
-    """
-    from collections.abc import Callable
-
-    import lineax as lx
-    import optimistix as optx
-
-    class RoundingAwareTrustRegion(optx.AbstractSearch):
-        floor: float
-        inner: optx.ClassicalTrustRegion
-
-        def init(self, y, f_info_struct):
-            return self.inner.init(y, f_info_struct)
-
-        def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
-            step_size, accept, result, new_state = self.inner.step(first_step, y, y_eval, f_info, f_eval_info, state)
-            f, f_eval = f_info.as_min(), f_eval_info.as_min()
-            predicted = self.inner.predict_reduction(y_eval - y, f_info)   # <= 0
-            noise = self.floor * jnp.abs(f)
-            at_floor = ~first_step & (-predicted <= noise) & (jnp.abs(f_eval - f) <= noise)
-            return step_size, accept | at_floor, result, new_state
-
-    class LevenbergMarquardt(optx.AbstractGaussNewton):
-        rtol: float
-        atol: float
-        norm: Callable
-        descent: optx.DampedNewtonDescent
-        search: RoundingAwareTrustRegion
-        verbose: Callable
-
-        def __init__(self, rtol, atol, floor):
-            self.rtol, self.atol, self.norm = rtol, atol, optx.max_norm
-            # normal equations of the compressed 5 x 4 problem (`_compress`) by Cholesky; lam > 0
-            # keeps them definite
-            self.descent = optx.DampedNewtonDescent(linear_solver=lx.Normal(lx.Cholesky()))
-            self.search = RoundingAwareTrustRegion(floor, optx.ClassicalTrustRegion())
-            self.verbose = lambda **kwargs: None
-
-    return LevenbergMarquardt
-
-
-def _solve_optimistix(fn, theta0, args, max_steps, rtol, atol):
-    import optimistix as optx
-
-    solver = _optimistix_lm()(rtol, atol, _rounding_floor(theta0.dtype, rtol))
-    sol = optx.least_squares(fn, solver, theta0, args, max_steps=max_steps, throw=False)
-    ok = sol.result == optx.RESULTS.successful
-    return sol.value, ok, sol.stats["num_steps"]
-
-
-def _solve_jaxopt(fn, theta0, args, max_steps, rtol, atol):
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        import jaxopt
-
-    solver = jaxopt.LevenbergMarquardt(fn, maxiter=max_steps,
-                                       stop_criterion="madsen-nielsen", xtol=rtol, gtol=atol, tol=atol,
-                                       solver="cholesky", materialize_jac=True, jit=True)
-    with jax.numpy_dtype_promotion("standard"):  # jaxopt multiplies bools into floats internally
-        value, state = solver.run(theta0, args)
-    # The loop stops early only when the stopping criterion holds.
-    ok = state.iter_num < max_steps
-    return value, ok, state.iter_num
-
-
-def _solve_native(fn, theta0, args, max_steps, rtol, atol):
-    """A plain Levenberg-Marquardt loop (Nielsen's damping update) on the projected fit.
-
-    One pass over the lights per step gives cost, gradient g and Gauss-Newton matrix M at the
-    trial point together (`gauss_newton`); the damped step solves (M + lam I) d = -g by an
-    unrolled Cholesky. Termination on an accepted step as optimistix's: |d_i| <= atol + rtol |theta_i|
-    and a cost change <= atol + rtol cost; or when no step can reduce the cost any more in the working
-    precision (a stationary point).
-    """
-    dt = theta0.dtype
-    ratio_cl, w, lights, prior, stage = args
-
-    def linearized(theta):
-        objective, grad, matrix = _staged(gauss_newton(theta, ratio_cl, w, lights, fn.model, prior,
-                                                       ambient=_ambient(stage)), stage)
-        return objective, matrix, grad
-
-    # The loop's first pass evaluates the start itself (d = 0, accepted, not counted as a step):
-    # one copy of the linearization in the compiled program.
-    two = jnp.asarray(2.0, dt)
-
-    def cond(st):
-        return (st["step"] < max_steps) & ~st["done"]
-
-    def body(st):
-        theta, cost, a, g, lam, nu, first = st["theta"], st["cost"], st["a"], st["g"], st["lam"], st["nu"], st["first"]
-        d = jnp.where(first, 0.0, _chol_solve(a + lam * jnp.eye(4, dtype=dt), -g))
-        t_new = theta + d
-        c_new, a_new, g_new = linearized(t_new)
-        pred = 0.5 * jnp.dot(d, lam * d - g)  # predicted reduction of the linear model (> 0)
-        actual = cost - c_new
-        ratio = actual / jnp.maximum(pred, jnp.finfo(dt).tiny)
-        accept = first | ((ratio > 0) & jnp.isfinite(c_new))
-        small_step = jnp.all(jnp.abs(d) <= atol + rtol * jnp.abs(theta))
-        small_df = jnp.abs(actual) <= atol + rtol * cost
-        # a rejected step that could gain at most a rounding-level change of the cost: the cost is
-        # at its minimum up to rounding (in float32 the cost is only known to ~1e-6 relative)
-        stalled = ~accept & (pred <= _rounding_floor(dt, rtol) * cost)
-        done = ~first & jnp.where(accept, small_step & small_df, stalled)
-        lam_acc = lam * jnp.maximum(1 / 3, 1 - (2 * ratio - 1) ** 3)
-        lam_first = 1e-6 * jnp.max(jnp.diagonal(a_new)) + jnp.finfo(dt).tiny ** 0.5
-        return {"theta": jnp.where(accept, t_new, theta), "cost": jnp.where(accept, c_new, cost),
-                "a": jnp.where(accept, a_new, a), "g": jnp.where(accept, g_new, g),
-                "lam": jnp.where(first, lam_first, jnp.where(accept, lam_acc, lam * nu)),
-                "nu": jnp.where(accept, two, nu * 2), "step": st["step"] + jnp.where(first, 0, 1).astype(jnp.int32),
-                "done": done, "first": jnp.zeros((), bool)}
-
-    st0 = {"theta": theta0, "cost": jnp.asarray(jnp.inf, dt), "a": jnp.eye(4, dtype=dt), "g": jnp.zeros(4, dt),
-           "lam": jnp.ones((), dt), "nu": two, "step": jnp.zeros((), jnp.int32), "done": jnp.zeros((), bool),
-           "first": jnp.ones((), bool)}
-    st = jax.lax.while_loop(cond, body, st0)
-    return st["theta"], st["done"], st["step"]
-
+# the robust method's weights
 
 def _robust_weights(theta, ratio_cl, w, lights, model, prior, ambient=None):
     """Weights of an iteratively reweighted fit (Cauchy): w_l / (1 + (e_l / (ROBUST_SCALE m))^2),
@@ -547,36 +269,6 @@ def _cauchy(w, e2):
     return _normalized_weights(w / (1.0 + e2 / (ROBUST_SCALE**2 * med)))
 
 
-def _staged_rounds(run, fn, theta0, ratio_cl, w, lights, model, prior, robust_rounds, max_steps, rtol, atol):
-    """The solves of a real-capture fit, one solver body in a loop (compiled once):
-    `robust_rounds` geometry rounds (every parameter, an ambient term projected out, the
-    observations reweighted by how badly the lobeless fit at the photometric-stereo normal
-    explains them in the first round, `_diffuse_weights`, and the previous round's parameters
-    in the others, `_robust_weights`, without the dimmest ones, `_bright_enough`), then an
-    appearance round (the slopes alone, every valid observation at its weight, no ambient term:
-    the parameters that predict new lights).
-    Returns (theta, converged, steps): converged when the last geometry round and the appearance
-    round met their tolerance (earlier rounds only move the start of the next one)."""
-    dt = theta0.dtype
-    w_geo = _normalized_weights(w * _bright_enough(ratio_cl, w))
-    geometry = Stage(jnp.ones((), dt), jnp.ones(4, dt))
-    appearance = Stage(jnp.zeros((), dt), jnp.asarray([0.0, 0.0, 1.0, 1.0], dt))
-    w_first = _diffuse_weights(ratio_cl, w_geo, lights, model, geometry.ambient)
-
-    def round_(i, st):
-        th, ok, n = st
-        last = i == robust_rounds
-        stage = jax.tree_util.tree_map(lambda a, b: jnp.where(last, a, b), appearance, geometry)
-        w_later = _robust_weights(th, ratio_cl, w_geo, lights, model, prior, ambient=stage.ambient)
-        w_r = jnp.where(last, w, jnp.where(i == 0, w_first, w_later))
-        th_r, ok_r, n_r = run(fn, th, (ratio_cl, w_r, lights, prior, stage), max_steps, rtol, atol)
-        bad = ~jnp.all(jnp.isfinite(th_r))
-        counts = i >= robust_rounds - 1   # the rounds whose result the fit keeps
-        return jnp.where(bad, th, th_r), jnp.where(counts, ok & ok_r & ~bad, ok), n + n_r
-
-    return jax.lax.fori_loop(0, robust_rounds + 1, round_, (theta0, jnp.ones((), bool), jnp.zeros((), jnp.int32)))
-
-
 def _bright_enough(ratio_cl, w):
     """1 where an observation's luminance reaches DIM_FRACTION of the texel's upper quartile, else 0:
     the dimmest observations (cast and attached shadows, the terminator, ambient light) carry
@@ -591,48 +283,79 @@ def _bright_enough(ratio_cl, w):
     return jnp.where(jnp.sum(valid & keep) >= 8, keep, True).astype(w.dtype)
 
 
-def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs: Float[Array, "L 3"],
-              view_dir: Float[Array, "3"], *, model: str = "reciprocal", solver: str = DEFAULT_SOLVER,
-              max_steps: int = DEFAULT_MAX_STEPS, rtol: float | None = None, atol: float | None = None,
-              theta0: Float[Array, "4"] | None = None, materials: MaterialTable | None = None,
-              robust_rounds: int = 0) -> TexelFit:
-    """Fit one texel (not jitted; `fit_texels` is the jitted, vmapped version). `materials`: fit
-    under the prior of the texel's material (`MaterialTable`); None: no prior. `robust_rounds`:
-    reweight the observations by their residuals and solve again, this many times (`_robust_weights`)."""
-    if model not in MODELS:
-        raise ValueError(f"unknown model {model!r}: use one of {MODELS}")
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown solver {solver!r}: use one of {SOLVERS}")
-    ratio = jnp.asarray(ratio)
-    dt = ratio.dtype
-    weight, light_dirs, view_dir = (jnp.asarray(x, dt) for x in (weight, light_dirs, view_dir))
-    d_rtol, d_atol = default_tolerances(dt)
-    rtol = d_rtol if rtol is None else rtol
-    atol = d_atol if atol is None else atol
-    # Non-finite observations are invalid; keep them out of every product.
-    finite = jnp.all(jnp.isfinite(ratio), axis=-1) & jnp.isfinite(weight)
-    weight = jnp.where(finite, jnp.maximum(weight, 0.0), 0.0)
-    ratio_cl = jnp.where(finite[None, :], ratio.T, 0.0)
-    w = _normalized_weights(weight)
-    n_valid = jnp.sum(w > 0)
-    lights = lights_of(light_dirs, view_dir)
-    prior, row = None, jnp.asarray(-1, jnp.int32)
-    ambient = jnp.ones((), dt) if robust_rounds else None
-    if materials is not None:
-        start, prior, row = _material_start(ratio_cl, w, lights, model, materials, ambient=ambient)
-        theta0 = start if theta0 is None else theta0
-    elif theta0 is None:
-        theta0 = _initial_theta(ratio_cl, w, lights, model, ambient=ambient)
-    run = {"optimistix": _solve_optimistix, "jaxopt": _solve_jaxopt, "native": _solve_native}[solver]
-    if robust_rounds:
-        theta, ok, steps = _staged_rounds(run, _VarProResidual(model), theta0, ratio_cl, w, lights, model, prior,
-                                          robust_rounds, max_steps, rtol, atol)
-        bad = jnp.zeros((), bool)
-    else:
-        theta, ok, steps = run(_VarProResidual(model), theta0, (ratio_cl, w, lights, prior, None), max_steps, rtol,
-                               atol)
-        bad = ~jnp.all(jnp.isfinite(theta))
-        theta = jnp.where(bad, theta0, theta)
+# ---------------------------------------------------------------------------------------------
+# fitting a batch
+
+def _solve(settings: FitSettings, theta0, per_texel, lights, stage):
+    """Every texel's solve from theta0 (`N 4`); `per_texel` = (ratio_cl, w, prior or None), each
+    with a leading axis of N. A backend that steps solves the batch in lanes (`fitting.lanes`),
+    the others texel by texel (vmapped)."""
+    rtol, atol = default_tolerances(theta0.dtype)
+
+    def make(p):
+        return Problem(p[0], p[1], lights, p[2], stage)
+
+    if settings.solver in STEPPING:
+        return solve_in_lanes(STEPPING[settings.solver](settings.model, settings.max_steps, rtol, atol), theta0,
+                              per_texel, make)
+    solve, fn = BACKENDS[settings.solver], VarProResidual(settings.model)
+    return jax.vmap(lambda th, p: solve(fn, th, make(p), settings.max_steps, rtol, atol))(theta0, per_texel)
+
+
+def _finite_or(theta, fallback):
+    bad = ~jnp.all(jnp.isfinite(theta), axis=-1, keepdims=True)
+    return jnp.where(bad, fallback, theta), bad[..., 0]
+
+
+def _plain(ratio_cl, w, lights, settings: FitSettings):
+    """(theta, prior None, row -1, converged, steps) of per-texel least squares."""
+    model = settings.model
+    theta0 = jax.vmap(lambda r, wi: _initial_theta(r, wi, lights, model))(ratio_cl, w)
+    theta, ok, steps = _solve(settings, theta0, (ratio_cl, w, None), lights, None)
+    theta, bad = _finite_or(theta, theta0)
+    return theta, None, jnp.full(theta.shape[0], -1, jnp.int32), ok & ~bad, steps
+
+
+def _robust(ratio_cl, w, lights, settings: FitSettings, table: MaterialTable):
+    """The robust method on a batch (docs/fitting.md, "Real captures: the robust method"):
+    (theta, prior, row, converged, steps). ROBUST_ROUNDS geometry solves (every parameter, an
+    ambient term projected out, without the dimmest observations, reweighted by how badly the
+    lobeless fit at the photometric-stereo normal explains them in the first, `_diffuse_weights`,
+    and the previous solve's fit in the others, `_robust_weights`), then an appearance solve (the
+    slopes alone, every valid observation at its weight, no ambient term: the parameters that
+    predict new lights). The solves are one loop over rounds around one lanes solve (one copy of
+    the solver in the compiled program). Converged: the last geometry solve and the appearance
+    solve met their tolerance (earlier solves only move the start of the next one)."""
+    model, dt = settings.model, ratio_cl.dtype
+    ambient = jnp.ones((), dt)
+    theta0, prior, row = jax.vmap(lambda r, wi: _material_start(r, wi, lights, model, table, ambient=ambient))(
+        ratio_cl, w)
+    w_geo = jax.vmap(lambda r, wi: _normalized_weights(wi * _bright_enough(r, wi)))(ratio_cl, w)
+    w_first = jax.vmap(lambda r, wg: _diffuse_weights(r, wg, lights, model, ambient))(ratio_cl, w_geo)
+    geometry = Stage(jnp.ones((), dt), jnp.ones(4, dt))
+    appearance = Stage(jnp.zeros((), dt), jnp.asarray([0.0, 0.0, 1.0, 1.0], dt))
+
+    def round_(i, carry):
+        theta, ok, steps = carry
+        last = i == ROBUST_ROUNDS
+        stage = jax.tree_util.tree_map(lambda a, b: jnp.where(last, a, b), appearance, geometry)
+        w_later = jax.vmap(lambda th, r, wg, pr: _robust_weights(th, r, wg, lights, model, pr, ambient=ambient))(
+            theta, ratio_cl, w_geo, prior)
+        weights = jnp.where(last, w, jnp.where(i == 0, w_first, w_later))
+        theta_r, ok_r, steps_r = _solve(settings, theta, (ratio_cl, weights, prior), lights, stage)
+        theta_r, bad = _finite_or(theta_r, theta)
+        kept = i >= ROBUST_ROUNDS - 1   # the rounds whose result the fit keeps
+        return theta_r, jnp.where(kept, ok & ok_r & ~bad, ok), steps + steps_r
+
+    n = theta0.shape[0]
+    theta, ok, steps = jax.lax.fori_loop(0, ROBUST_ROUNDS + 1, round_,
+                                         (theta0, jnp.ones(n, bool), jnp.zeros(n, jnp.int32)))
+    return theta, prior, row, ok, steps
+
+
+def _texel_fit(theta, ratio_cl, w, lights, model, prior, row, ok, steps, n_valid):
+    """A texel's `TexelFit` at its parameters, rho projected on every valid observation."""
+    dt = ratio_cl.dtype
     normal, sx, sy = theta_to_geometry(theta)
     a, b = columns(theta, lights, model)
     rho_d, rho_s = project_rho_columns(a, b, ratio_cl, w, prior=prior)
@@ -644,27 +367,52 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
     # An exact fit (cost 0, e.g. a black texel) is a global minimum; the trust-region ratio of
     # predicted to actual reduction is 0/0 there and optimistix never accepts a step to stop on.
     exact = cost <= jnp.finfo(dt).tiny
-    # (A non-finite solver result falls back to the start, whose cost is what `exact` sees.)
-    converged = ((ok & ~bad) | exact) & (n_valid > 0)
+    converged = (ok | exact) & (n_valid > 0)
     return TexelFit(rho_d=rho_d, rho_s=rho_s, normal=normal, sigma_x=sx, sigma_y=sy, residual=residual,
                     cost=cost, converged=converged, num_steps=jnp.asarray(steps, jnp.int32),
                     n_valid=n_valid.astype(jnp.int32), material=row)
 
 
-@functools.partial(jax.jit, static_argnames=("model", "solver", "max_steps", "rtol", "atol", "robust_rounds"))
+def _prepare(ratio, weight):
+    """(observations channel-major `3 L`, weights normalized to mean 1 over the valid ones, valid
+    count); non-finite observations are invalid and kept out of every product."""
+    finite = jnp.all(jnp.isfinite(ratio), axis=-1) & jnp.isfinite(weight)
+    weight = jnp.where(finite, jnp.maximum(weight, 0.0), 0.0)
+    ratio_cl = jnp.where(finite[None, :], ratio.T, 0.0)
+    w = _normalized_weights(weight)
+    return ratio_cl, w, jnp.sum(w > 0)
+
+
 def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_dirs: Float[Array, "L 3"],
-               view_dir: Float[Array, "3"], *, model: str = "reciprocal", solver: str = DEFAULT_SOLVER,
-               max_steps: int = DEFAULT_MAX_STEPS, rtol: float | None = None,
-               atol: float | None = None, materials: MaterialTable | None = None,
-               robust_rounds: int = 0) -> TexelFit:
-    """Fit a batch of texels (jitted, vmapped over the leading axis of `ratio` and `weight`).
+               view_dir: Float[Array, "3"], settings: FitSettings = FitSettings(), *,
+               materials: MaterialTable | None = None) -> TexelFit:
+    """Fit a batch of texels as `settings` say (`method`, `solver`, `max_steps`, `model`; `chunk`
+    plays no part here); jitted. The robust method fits under the prior of each texel's material in
+    `materials` (None: a table without priors, `fitting.materials.no_materials`).
 
     A texel's fit is bit-identical in any batch, at any place: the lights are padded with
     weight-0 observations and the batch with copies of its last texel to multiples of `_ALIGN`,
     so every texel's rows start equally aligned and every texel falls in a full vector lane
-    (XLA:CPU's remainder loops use scalar exp/log, which round differently).
+    (XLA:CPU's remainder loops use scalar exp/log, which round differently), and a texel's solve
+    runs the same operations whichever lane it takes (`fitting.lanes`).
     """
-    ratio, weight, light_dirs = jnp.asarray(ratio), jnp.asarray(weight), jnp.asarray(light_dirs)
+    return _fit_texels(ratio, weight, light_dirs, view_dir, materials, settings=settings.program())
+
+
+def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs: Float[Array, "L 3"],
+              view_dir: Float[Array, "3"], settings: FitSettings = FitSettings(), *,
+              materials: MaterialTable | None = None) -> TexelFit:
+    """Fit one texel (`fit_texels` of a batch of one)."""
+    out = fit_texels(jnp.asarray(ratio)[None], jnp.asarray(weight)[None], light_dirs, view_dir, settings,
+                     materials=materials)
+    return jax.tree_util.tree_map(lambda x: x[0], out)
+
+
+@functools.partial(jax.jit, static_argnames="settings")
+def _fit_texels(ratio, weight, light_dirs, view_dir, materials, *, settings: FitSettings) -> TexelFit:
+    ratio = jnp.asarray(ratio)
+    dt = ratio.dtype
+    weight, light_dirs, view_dir = (jnp.asarray(x, dt) for x in (weight, light_dirs, view_dir))
     n_texels = ratio.shape[0]
     pad_l = -light_dirs.shape[0] % _ALIGN
     pad_t = -n_texels % _ALIGN
@@ -676,7 +424,15 @@ def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_
     if pad_t:
         ratio = jnp.concatenate([ratio, jnp.repeat(ratio[-1:], pad_t, axis=0)])
         weight = jnp.concatenate([weight, jnp.repeat(weight[-1:], pad_t, axis=0)])
-    one = functools.partial(fit_texel, model=model, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol,
-                            robust_rounds=robust_rounds)
-    out = jax.vmap(lambda r, w: one(r, w, light_dirs, view_dir, materials=materials))(ratio, weight)
+    ratio_cl, w, n_valid = jax.vmap(_prepare)(ratio, weight)
+    lights = lights_of(light_dirs, view_dir)
+    if settings.robust:
+        table = no_materials(dt) if materials is None else materials
+        fitted = _robust(ratio_cl, w, lights, settings, table)
+    else:
+        fitted = _plain(ratio_cl, w, lights, settings)
+    theta, prior, row, ok, steps = fitted
+    out = jax.vmap(lambda th, r, wi, pr, ro, o, st, nv: _texel_fit(th, r, wi, lights, settings.model, pr, ro, o, st,
+                                                                    nv))(theta, ratio_cl, w, prior, row, ok, steps,
+                                                                         n_valid)
     return jax.tree_util.tree_map(lambda x: x[:n_texels], out) if pad_t else out

@@ -17,26 +17,26 @@ few materials, so the lobe is estimated where the data pin it and lent where the
 
 The table (a few rows) is the only global state: every tile of the fit gets it, and each texel
 takes the prior of its own material (`fitting.lm.MaterialTable`). Reasoning: docs/fitting.md,
-"Real captures: the robust method"; figures: benchmarks/RESULTS.md, "Fitting real captures (issue 23)".
+"Real captures: the robust method"; figures: benchmarks/RESULTS.md, "Fitting woven fabric (paper 004)".
 """
 
 from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float, Int
 
 from jaxrender.brdf import SIGMA_FLOOR
 
-from ._varpro import columns, geometry_to_theta, lights_of
-from .lm import COLOUR_EPS, MaterialTable, TexelFit, fit_texels
+from ._varpro import Prior, columns, geometry_to_theta, lights_of
 
-__all__ = ["estimate_materials", "sample_indices", "MAX_MATERIALS", "SAMPLE_TEXELS", "no_materials"]
+__all__ = ["MaterialTable", "estimate_materials", "material_priors", "no_materials", "MAX_MATERIALS", "COLOUR_EPS"]
 
 MAX_MATERIALS = 6     # rows of a table: the lobeless material and up to 5 with a lobe
-SAMPLE_TEXELS = 2048  # texels sampled for the global pass
 LOBE_SHARE = 0.02     # a lobe "carries a visible share" above this fraction of a texel's light
 MIN_MEMBERS = 64      # sampled texels per material, at least
 COLOUR_SPREAD_FLOOR = 0.05
@@ -47,25 +47,73 @@ _ALS_ROUNDS = 6
 _REASSIGN_ROUNDS = 2
 _MATTE_S = float(np.log(0.3))
 NOISE_FLOOR = 1e-12   # relative noise variance below which data count as exact (noise-free synthetic captures)
+COLOUR_EPS = 1e-3     # log(rho_d + eps): the colour a texel's material is recognised by
+# The priors a `MaterialTable` gives a texel (one setting for every capture): log-slopes within
+# TAU_LOG_SLOPE of the material's (a factor e^0.35 = 1.4 at one standard deviation), rho_s within
+# TAU_RHO_REL of the material's plus TAU_RHO_FLOOR of the texel's RMS observation (so a material
+# without a lobe still lets a texel's lobe through where its data pin it).
+TAU_LOG_SLOPE = 0.35
+TAU_RHO_REL = 0.35
+TAU_RHO_FLOOR = 0.05
+_FIELDS = ("rho_s", "s", "log_share", "colour", "colour_spread", "noise", "sample")
 
 
-def sample_indices(valid_texels: np.ndarray, count: int = SAMPLE_TEXELS) -> np.ndarray:
-    """Up to `count` indices of `valid_texels` (flat texel indices), evenly strided (deterministic)."""
-    valid_texels = np.asarray(valid_texels)
-    if valid_texels.size <= count:
-        return valid_texels
-    pick = np.linspace(0, valid_texels.size - 1, count).round().astype(np.int64)
-    return valid_texels[pick]
+class MaterialTable(eqx.Module):
+    """Materials shared by the texels of a capture (`estimate_materials`): per row the centre of a
+    Gaussian prior on a texel's lobe, and the capture's noise level. The only global state of a
+    robust fit: every chunk (every Dask task) gets it, and it is saved with the checkpoint.
+
+    A texel fitted with a table takes the prior of the row that explains its start best (the
+    MAP class: projected objective plus the row's log share); the prior's weights are the noise
+    variance (`noise` times the texel's mean squared observation) over the prior's variance.
+    Rows with `log_share` = -inf are unused (tables are padded to one shape)."""
+
+    rho_s: Float[Array, "M 3"]
+    s: Float[Array, "M 2"]         # the solver's log-slopes (`geometry_to_theta`) of the material's lobe
+    log_share: Float[Array, " M"]  # log of the fraction of the sample's texels in the material
+    colour: Float[Array, "M 3"]    # mean log(rho_d + COLOUR_EPS) of the material's texels
+    colour_spread: Float[Array, " M"]   # their standard deviation (per channel, pooled)
+    noise: Float[Array, ""]        # residual variance of the sample's fits / their mean squared observation
+    sample: Int[Array, ""]         # texels of the sample the table was estimated from
+
+    @property
+    def size(self) -> int:
+        return int(self.rho_s.shape[0])
+
+    def to_json(self) -> dict:
+        """The table as lists (float32 values round-trip exactly; -inf as -Infinity)."""
+        return {k: np.asarray(getattr(self, k)).tolist() for k in _FIELDS}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "MaterialTable":
+        return cls(*(jnp.asarray(np.asarray(data[k], np.int32 if k == "sample" else np.float32)) for k in _FIELDS))
+
+    def describe(self) -> dict:
+        """The table's figures for `btf.json`: rows in use, their shares, slopes, rho_s, the noise."""
+        used = np.flatnonzero(np.isfinite(np.asarray(self.log_share)))
+        return {"materials": int(used.size), "shares": [float(np.exp(self.log_share[j])) for j in used],
+                "sigma": [[round(float(x), 4) for x in SIGMA_FLOOR + np.exp(np.asarray(self.s[j]))] for j in used],
+                "rho_s": [[round(float(x), 4) for x in np.asarray(self.rho_s[j])] for j in used],
+                "noise": float(self.noise), "sample": int(self.sample)}
 
 
-def no_materials(dtype=np.float32) -> MaterialTable:
+def material_priors(table: MaterialTable, mean_sq: Float[Array, ""]) -> Prior:
+    """The `M` priors of a table for a texel of mean squared observation `mean_sq` (stacked)."""
+    var = table.noise * mean_sq
+    tau_rho = TAU_RHO_REL * jnp.mean(table.rho_s, axis=-1) + TAU_RHO_FLOOR * jnp.sqrt(mean_sq)
+    rho_weight = var / jnp.maximum(tau_rho * tau_rho, jnp.finfo(mean_sq.dtype).tiny)
+    s_weight = jnp.broadcast_to(var / TAU_LOG_SLOPE**2, rho_weight.shape)
+    return Prior(table.rho_s, rho_weight, table.s, s_weight)
+
+
+def no_materials(dtype=np.float32, sample: int = 0) -> MaterialTable:
     """A table with only the lobeless material and no noise: priors of weight 0."""
     rho_s = np.zeros((MAX_MATERIALS, 3), dtype)
     s = np.full((MAX_MATERIALS, 2), _MATTE_S, dtype)
     share = np.full(MAX_MATERIALS, -np.inf, dtype)
     share[0] = 0.0
     return MaterialTable(jnp.asarray(rho_s), jnp.asarray(s), jnp.asarray(share), jnp.zeros((MAX_MATERIALS, 3), dtype),
-                         jnp.ones(MAX_MATERIALS, dtype), jnp.asarray(0.0, dtype))
+                         jnp.ones(MAX_MATERIALS, dtype), jnp.asarray(0.0, dtype), jnp.asarray(sample, np.int32))
 
 
 @functools.partial(jax.jit, static_argnames="model")
@@ -82,24 +130,25 @@ def _columns_of(normals, s, light_dirs, view_dir, model):
 
 def _shared_lobe_fit(ratio, w, a, b):
     """Alternating least squares of one shared rho_s (3) and per-texel rho_d (T 3) >= 0:
-    min sum_t sum_l w (R - rho_d_t a - rho_s b)^2. Returns (rho_s, per-texel cost T)."""
-    saa = np.maximum(np.sum(w * a * a, axis=1), 1e-30)
-    sbb = float(np.sum(w * b * b)) + 1e-3 * float(np.sum(w * a * a))   # a ridge: no lobe where b vanishes
+    min sum_t sum_l w (R - rho_d_t a - rho_s b)^2. Returns (rho_s, per-texel cost T).
+
+    Every quantity is a per-texel sum over the lights, taken once: the rounds cost T, not T L."""
+    wa, wb = w * a, w * b
+    saa = np.maximum(np.sum(wa * a, axis=1), 1e-30)
+    sab = np.sum(wa * b, axis=1)
+    sbb_t = np.sum(wb * b, axis=1)
+    sbb = float(np.sum(sbb_t)) + 1e-3 * float(np.sum(saa))   # a ridge: no lobe where b vanishes
+    ha = np.einsum("tl,tlc->tc", wa, ratio)
+    hb = np.einsum("tl,tlc->tc", wb, ratio)
+    srr = np.einsum("tl,tlc->tc", w, ratio * ratio)
     rho_s = np.zeros(3)
     for _ in range(_ALS_ROUNDS):
-        rho_d = np.maximum(np.einsum("tl,tlc->tc", w * a, ratio - rho_s * b[..., None]) / saa[:, None], 0.0)
-        resid = ratio - rho_d[:, None, :] * a[..., None]
-        rho_s = np.maximum(np.einsum("tl,tlc->c", w * b, resid) / sbb, 0.0)
-    rho_d = np.maximum(np.einsum("tl,tlc->tc", w * a, ratio - rho_s * b[..., None]) / saa[:, None], 0.0)
-    r = ratio - rho_d[:, None, :] * a[..., None] - rho_s * b[..., None]
-    return rho_s, 0.5 * np.einsum("tl,tlc->t", w, r * r)
-
-
-def _lobeless_cost(ratio, w, a):
-    saa = np.maximum(np.sum(w * a * a, axis=1), 1e-30)
-    rho_d = np.maximum(np.einsum("tl,tlc->tc", w * a, ratio) / saa[:, None], 0.0)
-    r = ratio - rho_d[:, None, :] * a[..., None]
-    return 0.5 * np.einsum("tl,tlc->t", w, r * r)
+        rho_d = np.maximum((ha - rho_s * sab[:, None]) / saa[:, None], 0.0)
+        rho_s = np.maximum((hb.sum(0) - np.einsum("tc,t->c", rho_d, sab)) / sbb, 0.0)
+    rho_d = np.maximum((ha - rho_s * sab[:, None]) / saa[:, None], 0.0)
+    cost = (srr - 2 * rho_d * ha - 2 * rho_s * hb + rho_d * rho_d * saa[:, None] + 2 * rho_d * rho_s * sab[:, None]
+            + rho_s * rho_s * sbb_t[:, None])
+    return rho_s, 0.5 * np.maximum(cost, 0.0).sum(1)
 
 
 def _spread(x: np.ndarray) -> float:
@@ -137,26 +186,22 @@ def _colour(rho_d):
     return np.log(np.maximum(rho_d, 0.0) + COLOUR_EPS)
 
 
-def estimate_materials(ratio, weight, light_dirs, view_dir, *, model: str = "reciprocal",
-                       fits: TexelFit | None = None, fit=None) -> tuple[MaterialTable, dict]:
-    """The material table of a sample of texels (`ratio` `S L 3`, `weight` `S L`; module docstring).
-
-    `fits`: the sample's free fits if already done; `fit(ratio, weight)`: how to fit them
-    (default `fitting.lm.fit_texels`). Returns (table, info) with info's per-material figures."""
+def estimate_materials(ratio, weight, light_dirs, view_dir, fits, *, model: str = "reciprocal") -> MaterialTable:
+    """The material table of a sample of texels (`ratio` `S L 3`, `weight` `S L`; module docstring)
+    from their free fits `fits` (a `fitting.lm.TexelFit` of `S` texels, or a dict of its
+    normal, rho_d, rho_s, sigma_x, sigma_y and n_valid)."""
     ratio = np.asarray(ratio, np.float32)
     weight = np.asarray(weight, np.float32)
     dirs = np.asarray(light_dirs, np.float32)
     view = np.asarray(view_dir, np.float32)
     n = ratio.shape[0]
-    if fits is None and n:
-        fits = (fit or (lambda r, w: fit_texels(r, w, dirs, view, model=model)))(ratio, weight)
     if n == 0:
-        return no_materials(), {"materials": 0, "sample": 0}
+        return no_materials()
     fields = ("normal", "rho_d", "rho_s", "sigma_x", "sigma_y", "n_valid")
     fits = {k: np.asarray(fits[k] if isinstance(fits, dict) else getattr(fits, k)) for k in fields}
     keep = (fits["n_valid"] >= 8) & np.all(np.isfinite(fits["normal"]), -1)
     if keep.sum() < MIN_MEMBERS // 2:   # too few for any material (a row needs this many members)
-        return no_materials(), {"materials": 0, "sample": n}
+        return no_materials(sample=n)
     ratio, weight = ratio[keep], weight[keep]
     fits = {k: v[keep] for k, v in fits.items()}
     n = ratio.shape[0]
@@ -215,7 +260,7 @@ def estimate_materials(ratio, weight, light_dirs, view_dir, *, model: str = "rec
             spread = max(float(np.sqrt(np.mean((colour[members] - centre) ** 2))), COLOUR_SPREAD_FLOOR)
             rows.append((best[1], best[2], centre, spread, members.size))
         if all(r is None for r in rows):   # every material lost its members: no table
-            return no_materials(), {"materials": 0, "sample": n}
+            return no_materials(sample=n)
         seeds = [r[0] if r is not None else None for r in rows]
         # reassign every texel to the material that explains it best (data, colour, share)
         costs = np.full((n, len(rows)), np.inf)
@@ -247,7 +292,6 @@ def estimate_materials(ratio, weight, light_dirs, view_dir, *, model: str = "rec
 
     out = [r for r in rows if r is not None][:MAX_MATERIALS]
     counts = np.array([np.sum(assign == j) for j, r in enumerate(rows) if r is not None], float)[:MAX_MATERIALS]
-    table = no_materials()
     rho = np.zeros((MAX_MATERIALS, 3), np.float32)
     srow = np.full((MAX_MATERIALS, 2), _MATTE_S, np.float32)
     log_share = np.full(MAX_MATERIALS, -np.inf, np.float32)
@@ -257,13 +301,8 @@ def estimate_materials(ratio, weight, light_dirs, view_dir, *, model: str = "rec
         if counts[j] > 0:
             rho[j], srow[j], log_share[j] = mu, s, np.log(counts[j] / counts.sum())
             centres[j], spreads[j] = centre, spread
-    table = MaterialTable(jnp.asarray(rho), jnp.asarray(srow), jnp.asarray(log_share), jnp.asarray(centres),
-                          jnp.asarray(spreads), jnp.asarray(noise, np.float32))
-    info = {"materials": int(np.isfinite(log_share).sum()), "shares": [float(c / counts.sum()) for c in counts],
-            "sigma": [[round(float(x), 4) for x in SIGMA_FLOOR + np.exp(r[0])] for r in out],
-            "rho_s": [[round(float(x), 4) for x in r[1]] for r in out], "noise": noise, "sample": n,
-            "lobed": int(lobed.sum())}
-    return table, info
+    return MaterialTable(jnp.asarray(rho), jnp.asarray(srow), jnp.asarray(log_share), jnp.asarray(centres),
+                         jnp.asarray(spreads), jnp.asarray(noise, np.float32), jnp.asarray(n, np.int32))
 
 
 @functools.partial(jax.jit, static_argnames="model")

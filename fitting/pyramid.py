@@ -43,7 +43,7 @@ def pyramid_sizes(size: tuple[int, int], *, levels: int | None = None) -> list[t
 
 
 def banded_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: int = DEFAULT_ITERATIONS,
-                      chunk: int = 4096, band_texels: int = BAND_TEXELS):
+                      chunk: int = 4096, band_texels: int = BAND_TEXELS, fixed: bool = False):
     """`em_downsample` of a large one-lobe level (a fit's level 0) in bands of output rows: the
     EM's buffers then grow with a band, not with the level (measured: ~0.7 kB per level-0 texel
     in one piece). Each band holds whole EM chunks of `chunk` texels at the same flat positions as
@@ -56,13 +56,13 @@ def banded_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations
     step = chunk // math.gcd(chunk, ww)   # output rows of a whole number of chunks
     rows = max(step, band_texels // ww // step * step)
     if hh < 2 * rows or bool(jnp.any(level.weight)):
-        return em_downsample(level, order=order, iterations=iterations, chunk=chunk)
+        return em_downsample(level, order=order, iterations=iterations, chunk=chunk, fixed=fixed)
     starts = list(range(0, hh - rows + 1, rows))   # the last band runs to the end (rows .. 2 rows - 1)
     outs, infos = [], []
     for i, a in enumerate(starts):
         b = hh if i == len(starts) - 1 else a + rows
         band = jax.tree.map(lambda x: x[2 * a:min(2 * b, h)], level)
-        out, info = em_downsample(band, order=order, iterations=iterations, chunk=chunk)
+        out, info = em_downsample(band, order=order, iterations=iterations, chunk=chunk, fixed=fixed)
         jax.block_until_ready((out, info))   # one band's buffers at a time
         outs.append(out)
         infos.append(info)
@@ -95,7 +95,7 @@ def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = 
     out, infos, masks = [], [], []
     current = level0
     for _ in range(1, count):  # a handful of levels: each one is a vmapped kernel call
-        current, info = banded_downsample(current, order=order, iterations=iterations)
+        current, info = banded_downsample(current, order=order, iterations=iterations, fixed=True)
         if mask is not None:
             current, mask = masked_average(current, jnp.asarray(mask, current.rho_d.dtype))
             masks.append(mask)

@@ -29,7 +29,7 @@ from .capture import load_capture
 from .evaluate import angular_error_deg, heldout_split, lambertian_fit, read_normal_map, relative_rms, select_lights
 from .fit import fit_maps
 from .hdr import merge_capture
-from .lm import DEFAULT_SOLVER
+from .settings import FitSettings
 
 __all__ = ["relight", "load_btf_texels", "fit_report", "relight_errors", "heldout_report"]
 
@@ -117,12 +117,12 @@ def _table(angles: np.ndarray, errors: np.ndarray, level0: dict, inside: np.ndar
     return "\n".join(rows)
 
 
-def heldout_report(obs, k: int, *, solver: str = DEFAULT_SOLVER, progress: bool | None = None) -> dict:
+def heldout_report(obs, k: int, settings: FitSettings | None = None, *, progress: bool | None = None) -> dict:
     """Fit without every `k`-th light and predict those lights: relative RMS of the fit and of a
     least-squares Lambertian fit of the same lights (valid observations inside the mask)."""
     fitted, held = heldout_split(obs.n_lights, k)
     train, test = select_lights(obs, fitted), select_lights(obs, held)
-    maps = fit_maps(train, solver=solver, progress=progress)
+    maps = fit_maps(train, settings, progress=progress)
     texels = jax.tree.map(jnp.asarray, maps).texel()
     predicted = jnp.stack([relight(texels, d, obs.view_dir) for d in np.asarray(test.light_dirs)], axis=2)
     lambert = lambertian_fit(train)

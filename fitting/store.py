@@ -1,8 +1,8 @@
 """The observation store: a capture's merged observations on disk, chunked and compressed (zarr).
 
-`fitting.ingest.ingest_capture` writes it in one streaming pass over the images; `fitting.tiles`
-fits it tile by tile. Texels are flattened in row-major order (t = row * W + column), so a tile of
-the fit (`--chunk` texels) is one contiguous range of rows of every array:
+`fitting.ingest.ingest_capture` writes it in one streaming pass over the images; the fit engine
+(`fitting.engine`) fits it chunk by chunk. Texels are flattened in row-major order (t = row * W +
+column), so a chunk of the fit (`--chunk` texels) is one contiguous range of rows of every array:
 
 ```
 STORE_DIR/zarr.json     zarr v3 group; its attributes record the layout (size, lights, tile, dtype)

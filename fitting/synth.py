@@ -1,4 +1,4 @@
-"""Synthetic multi-light HDR captures with known parameter maps (issue 4, section 1).
+"""Synthetic multi-light HDR captures with known parameter maps.
 
 A woven fabric in the spirit of the paper's Noh costumes: a plain-weave silk ground (warp threads
 along the image rows' direction y, weft along x, in two colours) with a gold brocade motif where

@@ -162,6 +162,8 @@ class Costume(eqx.Module):
     uv: Float[Array, "R 2"]
     triangles: Int[Array, "T 3"]         # into the rendered vertices
     sim_triangles: Int[Array, "T 3"]     # the same triangles, into the simulated vertices
+    edges: Int[Array, "E 2"]             # the triangles' edges (simulated vertices), kept outside the volumes
+    inverse_mass: Float[Array, " N"]     # 1 for a free vertex, 0 for a fixed one (the edges' pushes)
     dt: float = eqx.field(static=True)
     mass: float = eqx.field(static=True)
     damping: float = eqx.field(static=True)          # air drag, 1/s
@@ -220,8 +222,31 @@ def _body_piece(p0: np.ndarray, joints: dict[str, int], s: float, rows: int, col
     around = np.mod(centre_phi, 2 * np.pi)
     side = np.minimum(np.abs(around - np.pi / 2), np.abs(around - 1.5 * np.pi))
     keep[r_shoulder + 1:r_waist - 1, side < 0.33] = False
+    # ... and wherever an arm's bone passes through the cut at the first pose (a narrow armhole):
+    # a cell an arm threads through could never be pushed off it
+    arms = [(p0[joints[f"upper_arm_{k}"]], p0[joints[f"lower_arm_{k}"]]) for k in ("L", "R")]
+    keep &= ~_threaded_cells(points, arms)
     rings = {"collar": list(range(COLLAR_ROWS)), "chest": [r_chest], "waist": [r_waist, r_waist + 1]}
     return _Piece(points, st, True, keep, COSTUME_LAYOUT["body"]), rings
+
+
+def _threaded_cells(points: np.ndarray, segments: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """(rows - 1, cols) whether any of the segments crosses the cell's quad (its two triangles)."""
+    a, b, c, d = points[:-1, :-1], points[:-1, 1:], points[1:, :-1], points[1:, 1:]
+    out = np.zeros(a.shape[:2], bool)
+    for p, q in segments:
+        for t0, t1, t2 in ((a, c, b), (b, c, d)):
+            e1, e2, dq = t1 - t0, t2 - t0, q - p
+            pv = np.cross(dq, e2)
+            det = np.sum(e1 * pv, -1)
+            inv = 1.0 / np.where(np.abs(det) > 1e-12, det, np.inf)
+            tv = p - t0
+            u = np.sum(tv * pv, -1) * inv
+            qv = np.cross(tv, e1)
+            v = np.sum(dq * qv, -1) * inv
+            t = np.sum(e2 * qv, -1) * inv
+            out |= (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
+    return out
 
 
 def _sleeve_piece(p0: np.ndarray, joints: dict[str, int], s: float, side: str, body_a: float, rows: int,
@@ -363,11 +388,16 @@ def dress_performer(motion: SkeletonMotion, joints: dict[str, int], *, rows: int
     fixed_joint = np.asarray(fixed_joint, np.int64)
     local = np.einsum("pji,pj->pi", r0[fixed_joint], pts[fixed] - p0[fixed_joint])
     sim_tris = render_index[tris]
+    edges = np.unique(np.sort(np.concatenate([sim_tris[:, [0, 1]], sim_tris[:, [1, 2]], sim_tris[:, [2, 0]]]), axis=1),
+                      axis=0)
+    inverse_mass = np.ones(n)
+    inverse_mass[fixed] = 0.0
     x0 = jnp.asarray(pts, dtype)
     costume = Costume(ClothState(x0, x0, jnp.zeros((), dtype)), springs, jnp.asarray(fixed, jnp.int32),
                       jnp.asarray(fixed_joint, jnp.int32), jnp.asarray(local, dtype), volumes,
                       jnp.asarray(render_index, jnp.int32), jnp.asarray(uv, dtype), jnp.asarray(tris, jnp.int32),
-                      jnp.asarray(sim_tris, jnp.int32), dt, mass / n, damping, spring_damping, margin, 0.004)
+                      jnp.asarray(sim_tris, jnp.int32), jnp.asarray(edges, jnp.int32), jnp.asarray(inverse_mass, dtype),
+                      dt, mass / n, damping, spring_damping, margin, 0.004)
     if settle_steps:
         still = SkeletonMotion(motion.positions[:1], motion.rotations[:1], motion.frame_time)
         settled = _settle_jit(costume, still, settle_steps)
@@ -402,12 +432,53 @@ def _push_out(x: Float[Array, "N 3"], a: Float[Array, "B 3"], b: Float[Array, "B
     return x
 
 
+def _push_edges_out(x: Float[Array, "N 3"], edges: Int[Array, "E 2"], inverse_mass: Float[Array, " N"],
+                    a: Float[Array, "B 3"], b: Float[Array, "B 3"], radius: Float[Array, " B"]) -> Float[Array, "N 3"]:
+    """Every edge moved out of the capsules it is inside: the closest points of the edge and
+    the capsule's axis (segment to segment), the edge's point carried to radius from the axis by
+    moving its two ends in proportion to their share of it (and to their inverse mass: a fixed
+    end does not move), each vertex by the mean of the moves its edges ask. Vertices outside the
+    capsules can still leave an edge between them crossing a thin one (an arm through a robe's
+    opening): this keeps the triangles, not only their corners, out of the body."""
+    p, q = x[edges[:, 0]], x[edges[:, 1]]                      # E 3
+    d1 = [(q[:, k] - p[:, k])[:, None] for k in range(3)]      # by components: E B
+    d2 = [(b[:, k] - a[:, k])[None] for k in range(3)]
+    r = [p[:, k][:, None] - a[:, k][None] for k in range(3)]
+    dot = lambda u, v: u[0] * v[0] + u[1] * v[1] + u[2] * v[2]  # noqa: E731
+    aa = jnp.maximum(dot(d1, d1), 1e-20)
+    ee = jnp.maximum(dot(d2, d2), 1e-20)
+    f, c, bb = dot(d2, r), dot(d1, r), dot(d1, d2)
+    denom = aa * ee - bb * bb
+    s = jnp.where(denom > 1e-12 * aa * ee, jnp.clip((bb * f - c * ee) / jnp.maximum(denom, 1e-30), 0.0, 1.0), 0.0)
+    t = (bb * s + f) / ee
+    s = jnp.where(t < 0, jnp.clip(-c / aa, 0.0, 1.0), jnp.where(t > 1, jnp.clip((bb - c) / aa, 0.0, 1.0), s))
+    t = jnp.clip(t, 0.0, 1.0)
+    gap = [r[k] + s * d1[k] - t * d2[k] for k in range(3)]    # axis point -> edge point
+    dist = jnp.sqrt(jnp.maximum(dot(gap, gap), 1e-20))
+    depth = jnp.maximum(radius[None] - dist, 0.0)              # > 0: the edge is inside
+    push = [depth * g / dist for g in gap]                     # the edge point's move out of each capsule
+    w0 = (1 - s) * inverse_mass[edges[:, 0]][:, None]
+    w1 = s * inverse_mass[edges[:, 1]][:, None]
+    scale = 1.0 / jnp.maximum((1 - s) * w0 + s * w1, 0.5)   # a point near a fixed end: at most 2 x depth
+    move0 = jnp.stack([jnp.sum(w0 * scale * m, axis=1) for m in push], -1)
+    move1 = jnp.stack([jnp.sum(w1 * scale * m, axis=1) for m in push], -1)
+    inside = jnp.sum(depth, axis=1) > 0
+    move = jnp.concatenate([move0, move1])
+    ends = jnp.concatenate([edges[:, 0], edges[:, 1]])
+    active = jnp.concatenate([inside & (inverse_mass[edges[:, 0]] > 0), inside & (inverse_mass[edges[:, 1]] > 0)])
+    n = x.shape[0]
+    total = jax.ops.segment_sum(move, ends, num_segments=n)
+    count = jax.ops.segment_sum(active.astype(x.dtype), ends, num_segments=n)
+    return x + total / jnp.maximum(count, 1.0)[:, None]
+
+
 def advance_costume(costume: Costume, state: ClothState, motion: SkeletonMotion, *, steps: int,
                     gravity: float = 9.81, passes: int = 2) -> ClothState:
     """Continue the robe's Verlet simulation from `state` for `steps` steps of `costume.dt`
     following `motion`: springs with dampers along them, air drag, gravity; after each step every
-    free vertex is pushed out of the body's volumes (`passes` sweeps, to radius + margin) and
-    above the floor, and the fixed vertices are set on the skeleton. Jittable (`steps` static)."""
+    free vertex is pushed out of the body's volumes (`passes` sweeps, to radius + margin), every
+    edge too (`_push_edges_out`), and above the floor, and the fixed vertices are set on the
+    skeleton, pushed out of the arms' volumes. Jittable (`steps` static)."""
     x0 = state.x
     dtype = x0.dtype
     dt = costume.dt
@@ -416,6 +487,7 @@ def advance_costume(costume: Costume, state: ClothState, motion: SkeletonMotion,
     keep = 1 - costume.damping * dt
     n = x0.shape[0]
     body = costume.body
+    arms = np.asarray([i for i, name in enumerate(body.names) if name.startswith(("upper_arm", "lower_arm", "hand"))])
 
     def step(carry, k):
         x, xp = carry
@@ -432,8 +504,12 @@ def advance_costume(costume: Costume, state: ClothState, motion: SkeletonMotion,
         a, b = body.ends(pos, rot)
         for _ in range(passes):
             xn = _push_out(xn, a, b, body.radius + costume.margin)
+        xn = _push_edges_out(xn, costume.edges, costume.inverse_mass, a, b, body.radius + costume.margin)
         xn = xn.at[:, 1].set(jnp.maximum(xn[:, 1], costume.floor))
-        xn = xn.at[costume.fixed_index].set(fixed_positions(costume, pos, rot))
+        # the fixed vertices on the skeleton, pushed aside by an arm that swings into the collar or
+        # the chest ring (pinned, they would stay inside it)
+        fixed = _push_out(fixed_positions(costume, pos, rot), a[arms], b[arms], body.radius[arms] + costume.margin)
+        xn = xn.at[costume.fixed_index].set(fixed)
         return (xn, x), None
 
     (x, xp), _ = jax.lax.scan(step, (state.x, state.x_prev), jnp.arange(steps))

@@ -1,6 +1,7 @@
 """The fit of a store as Dask tasks: a LocalCluster of 2 worker processes gives the maps of one
 process bit for bit, and a worker killed (SIGKILL) mid-run does not fail the fit."""
 
+import json
 import os
 import signal
 import threading
@@ -12,8 +13,9 @@ import pytest
 
 distributed = pytest.importorskip("distributed")
 
-from fitting import fit_store, ingest_capture, open_store, synth_capture  # noqa: E402
-from jaxrender.io import read_btf  # noqa: E402
+from fitting import FitSettings, fit_store, ingest_capture, open_store, synth_capture  # noqa: E402
+from fitting.fit import fit_store_maps  # noqa: E402
+from jaxrender.io import InputError, read_btf, write_png  # noqa: E402
 
 DASK_UNCONVERGED_MAX = 2
 CHUNK = 8  # the 55 texels of the mask (8 x 8 texels): 7 tiles, 7 tasks
@@ -40,7 +42,7 @@ def setup(tmp_path_factory):
     os.environ.update(env)
     try:
         with jax.enable_x64(False):  # float32 observations, as `fitting fit` runs
-            fit_store(store, root / "btf_one", chunk=CHUNK, pyramid=False, progress=False)
+            fit_store(store, root / "btf_one", FitSettings(chunk=CHUNK), pyramid=False, progress=False)
     finally:
         for name, value in saved.items():
             jax.config.update(name, value)
@@ -60,10 +62,6 @@ MASK[5:, :3] = 0  # 9 texels not fitted: tiles of the mask's texels, not of the 
 
 def _add_mask_and_intensities(capture):
     """The measured-capture extensions on the Dask path: a mask and per-light RGB intensities."""
-    import json
-
-    from jaxrender.io import write_png
-
     write_png(capture / "mask.png", MASK, srgb=False)
     manifest = json.loads((capture / "capture.json").read_text())
     manifest["mask"] = "mask.png"
@@ -92,7 +90,7 @@ def _assert_same(btf_dir, ref):
 
 def test_two_workers_give_the_single_process_maps(setup):
     root, store, ref, client = setup
-    fit_store(store, root / "btf_two", chunk=CHUNK, pyramid=False, progress=False, scheduler=client)
+    fit_store(store, root / "btf_two", FitSettings(chunk=CHUNK), pyramid=False, progress=False, scheduler=client)
     manifest, _ = read_btf(root / "btf_two")
     assert manifest["scheduler"].startswith("dask client")
     _assert_same(root / "btf_two", ref)
@@ -107,7 +105,7 @@ def test_a_killed_worker_does_not_fail_the_fit(setup):
 
     def run():
         try:
-            fit_store(store, out, chunk=CHUNK, pyramid=False, progress=False, scheduler=client)
+            fit_store(store, out, FitSettings(chunk=CHUNK), pyramid=False, progress=False, scheduler=client)
         except BaseException as error:  # reported below
             errors.append(error)
 
@@ -127,9 +125,6 @@ def test_a_killed_worker_does_not_fail_the_fit(setup):
 def test_rerun_on_the_cluster_resumes_from_the_tiles_written(setup):
     """The whole cluster died after 3 tiles (here: a local run stopped after 3): a rerun on the
     cluster submits only the other 5 and the maps are the same."""
-    from fitting.tiles import fit_store_maps
-    from jaxrender.io import InputError
-
     root, store_dir, ref, client = setup
     out = root / "btf_resumed"
 
@@ -138,15 +133,15 @@ def test_rerun_on_the_cluster_resumes_from_the_tiles_written(setup):
             raise InputError(None, "stopped")
 
     with jax.enable_x64(False), pytest.raises(InputError):
-        fit_store_maps(open_store(store_dir), partial_dir=out / ".partial", chunk=CHUNK, progress=False,
+        fit_store_maps(open_store(store_dir), FitSettings(chunk=CHUNK), partial_dir=out / ".partial", progress=False,
                        on_chunk=stop)
     before = {p.name: p.stat().st_mtime_ns for p in (out / ".partial").glob("chunk_*.npz")}
     assert len(before) == 3
     fitted = []
-    fit_store_maps(open_store(store_dir), partial_dir=out / ".partial", chunk=CHUNK, progress=False,
+    fit_store_maps(open_store(store_dir), FitSettings(chunk=CHUNK), partial_dir=out / ".partial", progress=False,
                    scheduler=client, on_chunk=fitted.append)
     n_tiles = -(-int(MASK.sum()) // CHUNK)  # tiles of the mask's 55 texels
     assert sorted(fitted) == sorted(set(range(n_tiles)) - {int(name[6:12]) for name in before})
     assert all((out / ".partial" / name).stat().st_mtime_ns == t for name, t in before.items())
-    fit_store(store_dir, out, chunk=CHUNK, pyramid=False, progress=False, scheduler=client)
+    fit_store(store_dir, out, FitSettings(chunk=CHUNK), pyramid=False, progress=False, scheduler=client)
     _assert_same(out, ref)

@@ -26,7 +26,7 @@ import pytest
 from capture_helpers import write_capture
 from test_store import _env, _fit_mode
 
-from fitting import fit_store, ingest_capture, open_store
+from fitting import FitSettings, fit_store, ingest_capture, open_store
 from fitting.store import FILL, StoreDamaged, create_arrays
 from jaxrender.app.cli.programs import fitting_main, jaxrender_main
 from jaxrender.errors import EXIT_BUSY, EXIT_INPUT, EXIT_INTERNAL, EXIT_MACHINE, InputError, OutputBusy
@@ -66,7 +66,7 @@ def store(root, capture):
 def reference(root, store):
     """A clean fit of the store with its pyramid (compiles the tile and EM programs into the cache)."""
     with _fit_mode(root):
-        return fit_store(store, root / "reference", chunk=TILE, progress=False)
+        return fit_store(store, root / "reference", FitSettings(chunk=TILE), progress=False)
 
 
 def _levels(btf: Path) -> list[dict]:
@@ -172,7 +172,8 @@ def test_a_damaged_chunk_is_written_again_from_the_capture(root, store, referenc
     bad = _copy(store, root / f"repair_{array}_{kind}")
     _damage(_chunk(bad, array, coords), kind)
     with _fit_mode(root), caplog.at_level(logging.WARNING, logger="fitting.ingest"):
-        out = fit_store(bad, root / f"btf_repair_{array}_{kind}", chunk=TILE, pyramid=False, progress=False)
+        out = fit_store(bad, root / f"btf_repair_{array}_{kind}", FitSettings(chunk=TILE), pyramid=False,
+                        progress=False)
     assert_same_maps(out, reference, levels=1)
     assert f"{array}/c/{'/'.join(map(str, coords))}" in caplog.text and "again" in caplog.text
     assert open_store(bad).scan() == []
@@ -383,7 +384,7 @@ KILL_AFTER_LEVEL0 = """
 import os, signal, sys
 import jaxrender.io._btf as btf_io
 from jaxrender.io import atomic_path
-from fitting import fit_store
+from fitting import FitSettings, fit_store
 real = btf_io.write_exr
 def write_exr(path, channels):
     if path.name == "level_01.exr":   # level 0 is written: die inside the next level's atomic write
@@ -392,7 +393,7 @@ def write_exr(path, channels):
             os.kill(os.getpid(), signal.SIGKILL)
     return real(path, channels)
 btf_io.write_exr = write_exr
-fit_store(sys.argv[1], sys.argv[2], chunk={chunk}, progress=False)
+fit_store(sys.argv[1], sys.argv[2], FitSettings(chunk={chunk}), progress=False)
 """
 
 
@@ -417,7 +418,7 @@ def test_killed_between_level0_and_the_pyramid(root, store, reference):
         assert code == EXIT_INPUT
         assert_one_line(err, f"{out / 'btf.json'}: missing: the BTF directory is incomplete")
     with _fit_mode(root):
-        fit_store(store, out, chunk=TILE, progress=False)
+        fit_store(store, out, FitSettings(chunk=TILE), progress=False)
     assert_same_maps(out, reference)
     assert len(read_btf(out, load=False)[0]["levels"]) == LEVELS
     assert sorted(p.name for p in out.iterdir()) == ["btf.json"] + [f"level_0{i}.exr" for i in range(LEVELS)] + \
@@ -436,7 +437,7 @@ def test_leftovers_of_a_killed_run_are_removed(root, store, reference):
         (out / name).write_bytes(b"")
     (out / ".notes").write_text("mine")
     with _fit_mode(root):
-        fit_store(store, out, chunk=TILE, pyramid=False, progress=False)
+        fit_store(store, out, FitSettings(chunk=TILE), pyramid=False, progress=False)
     assert not [name for name in names if (out / name).exists()]
     assert (out / ".notes").read_text() == "mine" and not (out / LOCK_NAME).exists()
     assert_same_maps(out, reference, levels=1)

@@ -22,6 +22,7 @@ from fitting.lm import (
     texel_cost,
     theta_to_geometry,
 )
+from fitting.settings import FitSettings
 from fitting.synth import paper_light_directions, stratified_light_subset
 from jaxrender.brdf import SIGMA_FLOOR, BTFTexel, reflectance
 
@@ -47,6 +48,7 @@ _HELD_IDS = np.setdiff1d(stratified_light_subset(jax.random.key(1), 150), _FIT_I
 LIGHTS = jnp.asarray(LIGHTS_ALL[_FIT_IDS], jnp.float64)
 HELD_OUT = jnp.asarray(LIGHTS_ALL[_HELD_IDS], jnp.float64)
 VIEW = jnp.array([0.0, 0.0, 1.0])
+PLAIN = FitSettings(method="plain")   # the per-texel least squares these tests hold to scipy
 
 
 def _unit(v):
@@ -94,19 +96,19 @@ def data():
 @pytest.fixture(scope="module")
 def fit_optx(data):
     _, ratio, weight = data
-    return fit_texels(ratio, weight, LIGHTS, VIEW)
+    return fit_texels(ratio, weight, LIGHTS, VIEW, PLAIN)
 
 
 @pytest.fixture(scope="module")
 def fit_jaxopt(data):
     _, ratio, weight = data
-    return fit_texels(ratio, weight, LIGHTS, VIEW, solver="jaxopt")
+    return fit_texels(ratio, weight, LIGHTS, VIEW, FitSettings(method="plain", solver="jaxopt"))
 
 
 @pytest.fixture(scope="module")
 def fit_native(data):
     _, ratio, weight = data
-    return fit_texels(ratio, weight, LIGHTS, VIEW, solver="native")
+    return fit_texels(ratio, weight, LIGHTS, VIEW, FitSettings(method="plain", solver="native"))
 
 
 def _angle_deg(a, b):
@@ -262,7 +264,7 @@ def test_degenerate_texels(data, fit_optx, fit_jaxopt, fit_native):
 def test_not_converged_when_out_of_steps(data):
     """With max_steps=2 the texels that need more steps report converged = 0."""
     _, ratio, weight = data
-    f = fit_texels(ratio[:N_REGULAR], weight[:N_REGULAR], LIGHTS, VIEW, max_steps=2)
+    f = fit_texels(ratio[:N_REGULAR], weight[:N_REGULAR], LIGHTS, VIEW, FitSettings(method="plain", max_steps=2))
     assert not bool(jnp.any(f.converged))
     assert np.all(np.asarray(f.num_steps) == 2)
 
@@ -272,6 +274,6 @@ def test_texels_independent_of_batch(data, fit_optx):
     property that makes checkpointed and resumed fits bit-identical)."""
     _, ratio, weight = data
     perm = np.array([3, 1, 8, 0, 2, 7, 6, 5, 4])
-    f = fit_texels(ratio[perm], weight[perm], LIGHTS, VIEW)
+    f = fit_texels(ratio[perm], weight[perm], LIGHTS, VIEW, PLAIN)
     for name in ("rho_d", "rho_s", "normal", "sigma_x", "sigma_y", "residual", "converged"):
         np.testing.assert_array_equal(np.asarray(getattr(f, name)), np.asarray(getattr(fit_optx, name))[perm])

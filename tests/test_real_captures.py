@@ -1,4 +1,4 @@
-"""Measured captures (issue 23): the capture format's extensions (unit-vector directions, per-light
+"""Measured captures: the capture format's extensions (unit-vector directions, per-light
 intensities without a white board, masks, EXR radiance kept), the DiLiGenT-format importer on the
 shared objects and on small malformed folders written here, the report on an irregular light
 layout with held-out lights, and the evaluation helpers against independent references."""

@@ -1,4 +1,4 @@
-"""Real-data accuracy of the default fit (issue 23): two DiLiGenT objects, every 4th row and column,
+"""Real-data accuracy of the default fit: two DiLiGenT objects, every 4th row and column,
 every 6th light held out. Normals against the laser scan (mean angular error over the mask) and the
 held-out photographs predicted against the least-squares Lambertian fit of the same lights
 (`fitting.evaluate`, an independent closed form). One compilation: both objects are fitted in
@@ -59,7 +59,7 @@ def _figures(folder: Path, tmp: Path) -> dict:
     truth = read_normal_map(folder / "Normal_gt.mat")[::STRIDE, ::STRIDE]
     fitted, held = heldout_split(obs.n_lights, 6)
     train, test = select_lights(obs, fitted), select_lights(obs, held)
-    maps = fitting.fit_maps(train, chunk=CHUNK, progress=False)
+    maps = fitting.fit_maps(train, fitting.FitSettings(chunk=CHUNK), progress=False)
     texels = jax.tree.map(jnp.asarray, maps).texel()
     predicted = jnp.stack([fitting.relight(texels, d, obs.view_dir) for d in np.asarray(test.light_dirs)], axis=2)
     lambert = lambertian_fit(train)

@@ -10,12 +10,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fitting import Observations, fit_maps, paper_light_angles, paper_light_directions
+from fitting import FitSettings, Observations, fit_maps, paper_light_angles, paper_light_directions
 from fitting.materials import estimate_materials
 from jaxrender.brdf import SIGMA_FLOOR, BTFTexel, reflectance
 
 N = 256
 CHUNK = 256
+ROBUST, PLAIN = FitSettings(chunk=CHUNK), FitSettings(method="plain", chunk=CHUNK)
 CONE = np.flatnonzero(paper_light_angles()[:, 0] <= 45)
 LIGHTS = paper_light_directions()[CONE[::12]]   # 96 lights
 HELD = paper_light_directions()[CONE[6::24]]    # 48 others, between them
@@ -85,8 +86,7 @@ def outliers():
         ratio[t, sector] *= 0.05
         ratio[t, rng.choice(len(LIGHTS), 2, replace=False)] *= 3.0
     obs = _observations(ratio)
-    return truth, fit_maps(obs, chunk=CHUNK, progress=False), fit_maps(obs, chunk=CHUNK, progress=False,
-                                                                       method="plain")
+    return truth, fit_maps(obs, ROBUST, progress=False), fit_maps(obs, PLAIN, progress=False)
 
 
 def test_shadows_and_highlights_are_outliers(outliers):
@@ -109,8 +109,7 @@ def matte():
     rng = np.random.default_rng(6)
     ratio[np.arange(N), rng.integers(0, len(LIGHTS), N)] *= 4.0
     obs = _observations(ratio)
-    return truth, fit_maps(obs, chunk=CHUNK, progress=False), fit_maps(obs, chunk=CHUNK, progress=False,
-                                                                       method="plain")
+    return truth, fit_maps(obs, ROBUST, progress=False), fit_maps(obs, PLAIN, progress=False)
 
 
 def _relight_error(maps, truth):
@@ -144,7 +143,8 @@ def test_materials_of_two_lobes():
     fits = {"normal": np.concatenate([np.asarray(sharp.lobe0.normal), np.asarray(broad.lobe0.normal)]),
             "rho_d": np.concatenate([red, blue]), "rho_s": np.full((2 * N, 3), 0.3),
             "sigma_x": np.full(2 * N, 0.1), "sigma_y": np.full(2 * N, 0.1), "n_valid": np.full(2 * N, 96)}
-    table, info = estimate_materials(ratio, np.ones(ratio.shape[:2]), LIGHTS, VIEW, fits=fits)
+    table = estimate_materials(ratio, np.ones(ratio.shape[:2]), LIGHTS, VIEW, fits)
+    info = table.describe()
     rows = np.isfinite(np.asarray(table.log_share))
     sigma = SIGMA_FLOOR + np.exp(np.asarray(table.s)[rows])
     rho_s = np.asarray(table.rho_s)[rows].mean(-1)
@@ -164,8 +164,8 @@ def test_fit_command_passes_the_method(tmp_path, monkeypatch, flag, method):
 
     seen = {}
 
-    def fake_fit_capture(source, out, **kwargs):
-        seen.update(kwargs)
+    def fake_fit_capture(source, out, settings, **kwargs):
+        seen["method"] = settings.method
         out = tmp_path / "btf"
         out.mkdir()
         (out / "btf.json").write_text(json.dumps({"fit": {}}))

@@ -18,6 +18,7 @@ from capture_helpers import write_capture, write_foreign_exr
 
 from fitting import (
     CaptureError,
+    FitSettings,
     fit_observations,
     fit_store,
     ingest_capture,
@@ -119,8 +120,8 @@ def test_float16_store_is_the_rounded_merge(root, capture, merged):
 
 def test_fit_from_float32_store_is_bit_identical(root, store32, merged):
     with _fit_mode(root):  # the fit of float32 observations, as `fitting fit` runs it
-        fit_observations(merged, root / "btf_mem", chunk=CHUNK, pyramid=False, progress=False)
-        fit_store(store32, root / "btf_store", chunk=CHUNK, pyramid=False, progress=False)
+        fit_observations(merged, root / "btf_mem", FitSettings(chunk=CHUNK), pyramid=False, progress=False)
+        fit_store(store32, root / "btf_store", FitSettings(chunk=CHUNK), pyramid=False, progress=False)
     manifest, got = read_btf(root / "btf_store")
     _, ref = read_btf(root / "btf_mem")
     assert manifest["store"]["dtype"] == "float32" and not (root / "btf_store" / ".partial").exists()
@@ -161,7 +162,7 @@ def test_killed_ingest_resumes_to_the_same_store(root, capture, store32):
 KILL_FIT = """
 import os, signal, sys
 from fitting.checkpoint import Checkpoint
-from fitting import fit_store
+from fitting import FitSettings, fit_store
 save, saved = Checkpoint.save, []
 def save_then_die(self, index, fit):
     save(self, index, fit)
@@ -169,7 +170,7 @@ def save_then_die(self, index, fit):
     if len(saved) == 3:
         os.kill(os.getpid(), signal.SIGKILL)
 Checkpoint.save = save_then_die
-fit_store(sys.argv[1], sys.argv[2], chunk={chunk}, pyramid=False, progress=False)
+fit_store(sys.argv[1], sys.argv[2], FitSettings(chunk={chunk}), pyramid=False, progress=False)
 """
 
 
@@ -177,14 +178,14 @@ def test_killed_fit_resumes_bit_identical(root, store32):
     ref_dir = root / "btf_store"  # test_fit_from_float32_store_is_bit_identical's, or made here
     if not (ref_dir / "btf.json").is_file():
         with _fit_mode(root):
-            fit_store(store32, ref_dir, chunk=CHUNK, pyramid=False, progress=False)
+            fit_store(store32, ref_dir, FitSettings(chunk=CHUNK), pyramid=False, progress=False)
     out = root / "btf_store_killed"
     proc = subprocess.run([sys.executable, "-c", textwrap.dedent(KILL_FIT.format(chunk=CHUNK)), str(store32),
                            str(out)], env=_env(root), capture_output=True, timeout=600)
     assert proc.returncode == -9, proc.stderr.decode()
     assert len(list((out / ".partial").glob("chunk_*.npz"))) == 3 and not (out / "btf.json").exists()
     with _fit_mode(root):
-        fit_store(store32, out, chunk=CHUNK, pyramid=False, progress=False)
+        fit_store(store32, out, FitSettings(chunk=CHUNK), pyramid=False, progress=False)
     _, got = read_btf(out)
     _, ref = read_btf(ref_dir)
     for name in ref[0]:

@@ -19,6 +19,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+import robe_contact
 from skimage import io as skio
 
 from fitting.pyramid import pyramid_levels
@@ -28,6 +29,8 @@ from jaxrender.brdf import BTFTexel
 from jaxrender.io import read_btf, read_exr
 
 SCRIPTS = Path(sys.executable).parent  # console scripts are installed beside the interpreter
+EDGE_DEPTH_TOL = 0.005  # m: how deep a robe edge may reach into a closed body part (measured 3.5 mm)
+FLOOR_TOL = 0.15     # m: the lowest point of the performer from the stage floor (y = 0; an odd pose's toe dips below)
 MOCAP = Path(os.environ.get("JAXRENDER_MOCAP", Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"))
 HANG_GUARD_S = 1800  # a hung run fails the test instead of the suite; not a speed assertion
 
@@ -159,13 +162,14 @@ def test_jaxrender_noh_small(tmp_path):
     """Two 64 x 48 frames of the Noh scene dancing an odd motion (a real walk with relabelled rotation
     channels, BOM, CRLF), written with `--out .` into a folder of the user's that holds the motion
     (its files stay): PNG + linear EXR per frame, the GIF and the MP4; the frames are pictures, and
-    they differ (the fires flicker) but show the same scene."""
+    they differ (the fires flicker) but show the same scene. With `--meshes`, each frame's body and
+    robe as OBJ (`assert_performer_meshes`)."""
     out = tmp_path / "noh"
     kept = users_folder(out)
     motion = relabelled_walk(out / "walk.bvh")
     kept[motion] = motion.read_bytes()
     proc = run("jaxrender", "noh", "--out", ".", "--motion", "walk.bvh", "--frames", "2", "--width", "64",
-               "--height", "48", cwd=out)
+               "--height", "48", "--meshes", cwd=out)
     assert "2 frames" in proc.stdout
     assert_kept(kept)
     assert not [p for p in out.iterdir() if p.name.startswith(".")]   # no staging folder left
@@ -182,6 +186,54 @@ def test_jaxrender_noh_small(tmp_path):
     gif = skio.imread(out / "noh.gif")
     assert gif.shape[0] == 2 and gif.shape[1:3] == (48, 64)
     assert (out / "noh.mp4").read_bytes()[4:8] == b"ftyp"      # an MP4 (ISO media) file beside them
+    assert_performer_meshes(out / "meshes", frames=2)
+
+
+def read_obj(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(vertices, triangles, uv, uv triangles) of an OBJ of triangles `f v/vt v/vt v/vt` (0-based)."""
+    v, vt, f, ft = [], [], [], []
+    for line in path.read_text().splitlines():
+        word, *rest = line.split() or [""]
+        if word == "v":
+            v.append([float(x) for x in rest])
+        elif word == "vt":
+            vt.append([float(x) for x in rest])
+        elif word == "f":
+            assert len(rest) == 3, line
+            corners = [[int(i) - 1 for i in c.split("/")] for c in rest]
+            f.append([c[0] for c in corners])
+            ft.append([c[1] for c in corners])
+    return np.asarray(v), np.asarray(f), np.asarray(vt), np.asarray(ft)
+
+
+def assert_performer_meshes(folder: Path, frames: int):
+    """frame_NNN_body.obj and frame_NNN_robe.obj, read back by their text: a standing performer in
+    metres with y up; every body part but the mask a closed mesh; uv in the texture's pages; no
+    robe vertex inside a closed body part and no robe edge deeper in one than `EDGE_DEPTH_TOL`
+    (`robe_contact.contact`: its own welding, nothing of the capsules). Edges do cross the body's
+    triangles in this odd pose (7 and 9 robe triangles): benchmarks/RESULTS.md, Noh."""
+    assert sorted(p.name for p in folder.iterdir()) == sorted(
+        f"frame_{i:03d}_{part}.obj" for i in range(frames) for part in ("body", "robe"))
+    for i in range(frames):
+        body = read_obj(folder / f"frame_{i:03d}_body.obj")
+        robe = read_obj(folder / f"frame_{i:03d}_robe.obj")
+        for v, f, vt, ft in (body, robe):
+            assert np.all(np.isfinite(v)) and f.min() >= 0 and f.max() < len(v) and ft.max() < len(vt)
+            assert f.shape == ft.shape and len(np.unique(f)) == len(v)     # every vertex used
+            assert np.all((vt[:, 0] >= 0) & (vt[:, 0] <= 1) & (vt[:, 1] >= 0) & (vt[:, 1] <= 2))
+        assert np.all(vt_page(body) >= 1) and np.all(vt_page(robe) < 1)     # body page / robe page
+        part, closed = robe_contact.parts(body[0], body[1])
+        assert closed.sum() == len(closed) - 1 >= 10                        # the capsules; the mask is open
+        height = body[0][:, 1].max() - body[0][:, 1].min()
+        assert 1.3 < height < 2.2 and abs(body[0][:, 1].min()) < FLOOR_TOL  # metres, y up, on the stage floor
+        shape = robe_contact.BodyShape(body[0], body[1], part, closed)
+        c = robe_contact.contact(robe[0], robe[1], shape)
+        assert c.inside_vertices == 0 and c.depth <= EDGE_DEPTH_TOL, c     # measured: 0.7 and 3.5 mm
+
+
+def vt_page(mesh) -> np.ndarray:
+    """The texture page of each triangle (robe: v < 1, body: v >= 1), from its uv centroid."""
+    return np.floor(mesh[2][mesh[3]].mean(axis=1)[:, 1])
 
 
 # --- fitting synth / fit / pyramid / relight / report ------------------------------------------------------------

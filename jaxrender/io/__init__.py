@@ -1,6 +1,7 @@
 """File I/O at the edge of the toolkit: EXR (OpenEXR), PNG (scikit-image), BTF directories,
-BVH motion capture, colour transfer functions and tone mapping, atomic writes, what a command may do
-to its outputs (`output_file`, `output_folder`, `check_finite`), output locks, and the error types."""
+BVH motion capture, OBJ meshes (written), colour transfer functions and tone mapping, atomic
+writes, what a command may do to its outputs (`output_file`, `output_folder`, `check_finite`),
+output locks, and the error types."""
 
 from ..errors import InputError as InputError
 from ..errors import InputErrors as InputErrors
@@ -46,6 +47,7 @@ from ._lock import LOCK_NAME as LOCK_NAME
 from ._lock import lock_owner as lock_owner
 from ._lock import output_lock as output_lock
 from ._mat import read_mat as read_mat
+from ._obj import write_obj as write_obj
 from ._outputs import check_finite as check_finite
 from ._outputs import output_file as output_file
 from ._outputs import output_folder as output_folder

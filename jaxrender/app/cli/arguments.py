@@ -74,3 +74,4 @@ def non_negative(value: str) -> float:
     if not x >= 0:
         raise argparse.ArgumentTypeError("must be >= 0")
     return x
+

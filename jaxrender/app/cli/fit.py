@@ -7,12 +7,11 @@ from __future__ import annotations
 import json
 
 from fitting import fit_capture
-from fitting.fit import DEFAULT_METHOD, METHODS
 from fitting.ingest import DEFAULT_MEMORY_GB
-from fitting.lm import DEFAULT_MAX_STEPS
 from fitting.store import DEFAULT_STORE_DTYPE, STORE_DTYPES
 
 from .arguments import positive_float, positive_int
+from .fit_options import add_fit_settings, fit_settings
 
 
 def configure(parser):
@@ -20,17 +19,7 @@ def configure(parser):
                         help="capture directory (capture.json + images) or observation store (`fitting ingest`)")
     parser.add_argument("--out", required=True, metavar="BTF_DIR",
                         help="output BTF directory (rerun on the same one to resume an interrupted fit)")
-    parser.add_argument("--solver", choices=("optimistix", "jaxopt", "native"), default="optimistix",
-                        help="Levenberg-Marquardt backend (default optimistix; native = fitting.lm's own, faster loop)")
-    parser.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD,
-                        help=f"default {DEFAULT_METHOD}: materials shared by the texels, shadows and highlights as "
-                             "outliers (measured captures); plain: per-texel least squares (paper 004)")
-    parser.add_argument("--chunk", type=positive_int, default=4096,
-                        help="texels per chunk: bounds memory, one checkpoint each (default 4096)")
-    parser.add_argument("--max-steps", type=positive_int, default=None,
-                        help="Levenberg-Marquardt steps per texel (default 40)")
-    parser.add_argument("--model", choices=("reciprocal", "paper"), default="reciprocal",
-                        help="model form (default reciprocal; paper = eq. 1 as printed)")
+    add_fit_settings(parser)
     parser.add_argument("--no-pyramid", action="store_true", help="write level 0 only (skip the EM pyramid)")
     parser.add_argument("--keep-store", action="store_true",
                         help="keep BTF_DIR/.store/ (the ingested observations) once the BTF is complete")
@@ -49,10 +38,9 @@ def configure(parser):
 
 
 def run(args) -> int:
-    out = fit_capture(args.capture_dir, args.out, solver=args.solver, chunk=args.chunk,
-                      max_steps=args.max_steps or DEFAULT_MAX_STEPS, model=args.model,
-                      pyramid=not args.no_pyramid, keep_store=args.keep_store, store_dtype=args.store_dtype,
-                      memory_gb=args.memory_gb, scheduler=args.scheduler or args.dask_workers, method=args.method)
+    out = fit_capture(args.capture_dir, args.out, fit_settings(args), pyramid=not args.no_pyramid,
+                      keep_store=args.keep_store, store_dtype=args.store_dtype, memory_gb=args.memory_gb,
+                      scheduler=args.scheduler or args.dask_workers)
     info = json.loads((out / "btf.json").read_text()).get("fit", {})
     print(f"{out}: converged {info.get('converged_fraction', float('nan')):.1%}, "
           f"median residual {info.get('median_residual', float('nan')):.4g}, fit {info.get('seconds', 0):.1f} s")

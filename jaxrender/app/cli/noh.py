@@ -13,14 +13,14 @@ from tqdm import tqdm
 from jaxrender.io import InputError, output_folder, read_btf, read_bvh, read_image
 from jaxrender.lights import load_envmap
 
-from ..scenes.noh import LABELS, btf_levels_from_channels, render_noh, write_animation
+from ..scenes.noh import LABELS, btf_levels_from_channels, render_noh, write_animation, write_meshes
 from .arguments import check_cells, number
 from .timed import add_time_argument, print_timing
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path,
-                        help="output directory (frames PNG + EXR, noh.gif, noh.mp4)")
+                        help="output directory (frames PNG + EXR, noh.gif, noh.mp4; meshes/ with --meshes)")
     parser.add_argument("--motion", type=Path, help="BVH motion capture to dance (default: the built-in Noh "
                         "motion: kamae, suriashi steps, a slow turn, the sleeve raised and lowered)")
     parser.add_argument("--mask", type=Path, help="RGB label PNG over the robe's uv (docs/noh.md): gold (255,255,0) "
@@ -37,6 +37,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--seed", type=int, default=2024, help="random seed (fires, light samples)")
     parser.add_argument("--no-video", action="store_true", help="skip the MP4")
+    parser.add_argument("--meshes", action="store_true", help="also write each frame's performer as OBJ with uv: "
+                        "meshes/frame_NNN_body.obj (body, hands, mask) and meshes/frame_NNN_robe.obj (world space, "
+                        "metres, y up)")
     add_time_argument(parser, "render a frame (the dance going on)")
 
 
@@ -82,12 +85,16 @@ def _inputs(args) -> list:
 def run(args) -> int:
     motion, mask, btfs, env = _load_inputs(args)
     info: dict = {}
+    meshes = [] if args.meshes else None
     with tqdm(total=args.frames, desc="noh frames", disable=None) as bar:
         frames = render_noh(frames=args.frames, width=args.width, height=args.height, key=jax.random.key(args.seed),
                             mask_rgb=mask, btfs=btfs, env=env, motion=motion, motion_source=args.motion,
-                            frame_dt=1.0 / args.fps, progress=bar.update, info=info, time_repeats=args.time)
+                            frame_dt=1.0 / args.fps, progress=bar.update, info=info, time_repeats=args.time,
+                            meshes=meshes)
     with output_folder(args.out, inputs=_inputs(args)) as stage:
         write_animation(stage, frames, exposure=info["exposure"], fps=args.fps, video=not args.no_video)
+        if meshes is not None:
+            write_meshes(stage, meshes)
     if args.time > 0:
         print(f"prepare_s={info['prepare_s']:.4f} recompiles={info['recompiles']}")
         print_timing(info["compile_s"], info["timed_s"])

@@ -24,6 +24,7 @@ FITTING_COMMANDS = {
     "pyramid": ("jaxrender.app.cli.pyramid", "build the EM multi-resolution 2-lobe levels of a BTF"),
     "relight": ("jaxrender.app.cli.relight", "render a fitted BTF under one distant light"),
     "report": ("jaxrender.app.cli.report", "relighting error and residuals of a fit, as a figure and a table"),
+    "evaluate": ("jaxrender.app.cli.evaluate", "K-fold light cross-validation of the fit against a Lambertian fit"),
 }
 SIMS_COMMANDS = {
     "ripples": ("jaxrender.app.cli.ripples", "grow wind ripples with the saltation + creep automaton"),
@@ -32,7 +33,8 @@ SIMS_COMMANDS = {
 
 
 JAXRENDER_DESCRIPTION = "`jaxrender` command line: a thin layer over the public API."
-FITTING_DESCRIPTION = "`fitting` command line: BTF capture synthesis, fitting, pyramid, relighting and reports."
+FITTING_DESCRIPTION = ("`fitting` command line: BTF capture synthesis, fitting, pyramid, relighting, reports and "
+                       "cross-validation.")
 SIMS_DESCRIPTION = "`sims` command line: the Nishimori-Ouchi ripple and dune automata."
 COMMAND_TABLES = {  # program: (description, subcommands); docs/_hooks/reference.py writes the CLI pages from it
     "jaxrender": (JAXRENDER_DESCRIPTION, JAXRENDER_COMMANDS),

@@ -13,6 +13,7 @@ import numpy as np
 
 from fitting import (
     LIGHT_DIRECTIONS,
+    FitSettings,
     direction_from_angles,
     fit_maps,
     relight,
@@ -40,7 +41,7 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> Iterator[dict]:
     jax.block_until_ready(obs.ratio)
     synth_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    maps = fit_maps(obs, chunk=1024, progress=False)
+    maps = fit_maps(obs, FitSettings(chunk=1024), progress=False)
     fit_s = time.perf_counter() - t0
     fitted = jax.tree.map(jnp.asarray, maps).texel()
 

@@ -6,12 +6,13 @@ Modules, one job each: `stage` (the stage's quads, ray cast), `performer` (the p
 robe, body, mask), `mask` (the robe's labels), `materials` (procedural BTFs and their EM
 pyramids), `environment` (the dusk sky), `scene` (assembly), `shading` (points and their
 shading), `rig` (the sequence's constant part), `motion` (one frame, the sequence loop),
-`animation` (rendering, tone mapping, PNG/EXR/GIF/MP4).
+`animation` (rendering, tone mapping, PNG/EXR/GIF/MP4, OBJ meshes).
 """
 
 from .animation import render_noh as render_noh
 from .animation import tonemap_frames as tonemap_frames
 from .animation import write_animation as write_animation
+from .animation import write_meshes as write_meshes
 from .environment import default_environment as default_environment
 from .mask import LABELS as LABELS
 from .mask import PALETTE as PALETTE
@@ -23,6 +24,8 @@ from .materials import procedural_btf as procedural_btf
 from .motion import noh_frame as noh_frame
 from .motion import noh_frame_jit as noh_frame_jit
 from .motion import render_sequence as render_sequence
+from .performer import ExportedMesh as ExportedMesh
+from .performer import exported_meshes as exported_meshes
 from .rig import NohRig as NohRig
 from .rig import prepare_rig as prepare_rig
 from .scene import NohScene as NohScene

@@ -1,6 +1,7 @@
 """The Noh animation: the scene assembled, its frames rendered one jitted call each
 (`render_noh`), tone mapped with one exposure for the whole sequence, and written as PNG + EXR
-frames, an animated GIF and an H.264 MP4 (`write_animation`)."""
+frames, an animated GIF and an H.264 MP4 (`write_animation`); the performer's meshes as OBJ
+(`write_meshes`)."""
 
 from __future__ import annotations
 
@@ -15,10 +16,11 @@ import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from jaxrender.brdf import BTFTexel
-from jaxrender.io import BVHMotion, atomic_path, linear_to_srgb, luminance, tonemap, write_exr, write_png
+from jaxrender.io import BVHMotion, atomic_path, linear_to_srgb, luminance, tonemap, write_exr, write_obj, write_png
 from jaxrender.lights import EnvMap
 
 from .motion import render_sequence
+from .performer import ExportedMesh, exported_meshes, performer_mesh
 from .scene import noh_scene
 
 EXPOSURE_KEY = 0.16   # the performer's 90th-percentile luminance on screen: a night lit by fires
@@ -28,7 +30,8 @@ def render_noh(*, frames: int = 60, width: int = 720, height: int = 480, key: PR
                mask_rgb: np.ndarray | None = None, btfs: dict[str, list[BTFTexel]] | None = None,
                env: EnvMap | None = None, motion: BVHMotion | None = None, motion_source=None, k_env: int = 20,
                k_fire: int = 20, progress=None, info: dict | None = None, time_repeats: int = 0,
-               shadow_resolution: int = 512, frame_dt: float = 0.1, **scene_kwargs) -> Float[Array, "F H W 3"]:
+               shadow_resolution: int = 512, frame_dt: float = 0.1, meshes: list | None = None,
+               **scene_kwargs) -> Float[Array, "F H W 3"]:
     """The animation: `frames` linear-radiance frames H x W x 3 (float32), `frame_dt` s apart, of
     the performer dancing `motion` (a BVH motion; default: the built-in `sims.noh_dance`).
 
@@ -36,7 +39,8 @@ def render_noh(*, frames: int = 60, width: int = 720, height: int = 480, key: PR
     and the sequence's constant part), `compile_s` (the first frame, including compilation),
     `frame_s` (a list, later frames), `recompiles` and `exposure` (for `tonemap_frames`: the
     performer's 90th-percentile luminance in frame 0 -> `EXPOSURE_KEY`). `time_repeats` = N: afterwards N
-    more frames of the dance (discarded) timed into `info["timed_s"]`.
+    more frames of the dance (discarded) timed into `info["timed_s"]`. `meshes` (a list) receives
+    each frame's (body, robe) `ExportedMesh` as rendered (`write_meshes`).
     """
     key = jax.random.key(2024) if key is None else key
     k_scene, k_rest = jax.random.split(key)
@@ -46,9 +50,12 @@ def render_noh(*, frames: int = 60, width: int = 720, height: int = 480, key: PR
                       duration=(frames + time_repeats) * frame_dt, **scene_kwargs)
     scene_s = time.perf_counter() - t0
     details: dict = {}
+    states = None if meshes is None else []
     out, _ = render_sequence(scene, frames=frames, key=k_rest, k_env=k_env, k_fire=k_fire, frame_dt=frame_dt,
                              shadow_resolution=shadow_resolution, progress=progress, time_repeats=time_repeats,
-                             info=details)
+                             info=details, states=states)
+    if meshes is not None:
+        meshes.extend(exported_meshes(performer_mesh(scene.performer, s), scene.performer) for s in states)
     if info is not None:
         mask = details.pop("performer_mask").reshape(-1)
         lum = np.asarray(luminance(out[0].reshape(-1, 3)[mask]))
@@ -90,4 +97,17 @@ def write_animation(out_dir: str | os.PathLike, frames: np.ndarray, *, name: str
             warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
             iio.imwrite(tmp, even, plugin="FFMPEG", fps=fps, codec="libx264", macro_block_size=1, quality=8)
         paths.append(out_dir / f"{name}.mp4")
+    return paths
+
+
+def write_meshes(out_dir: str | os.PathLike, meshes: list[tuple[ExportedMesh, ExportedMesh]]) -> list[Path]:
+    """meshes/frame_NNN_body.obj and meshes/frame_NNN_robe.obj of each frame's (body, robe): world
+    space, metres, y up, with the texture's coordinates (docs/noh.md, "Meshes")."""
+    folder = Path(out_dir) / "meshes"
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i, parts in enumerate(meshes):
+        for part, m in zip(("body", "robe"), parts):
+            paths.append(write_obj(folder / f"frame_{i:03d}_{part}.obj", m.vertices, m.triangles, uv=m.uv,
+                                   uv_triangles=m.uv_triangles, name=f"{part}_{i:03d}"))
     return paths

@@ -38,7 +38,7 @@ from jaxrender.textures import bilinear
 from sims import ClothState, advance_costume
 
 from .performer import PerformerMesh, performer_mesh
-from .rig import FlamePixels, NohRig, pixel_box, pow2, prepare_rig, projected_bounds, round_up
+from .rig import FlamePixels, NohRig, cell_radiance, pixel_box, pow2, prepare_rig, projected_bounds, round_up
 from .scene import NohScene
 from .shading import (
     PerformerPoints,
@@ -237,22 +237,22 @@ def noh_frame(scene: NohScene, rig: NohRig, state: ClothState, emission: Float[A
     # light: the environment's samples, the frame's flames
     fires = eqx.tree_at(lambda f: f.emission, scene.fires, emission)
     samples = sample_quad_lights(fires, key, k_fire)
-    n_fires = fires.center.shape[0]
+    fire_xz = fires.center[:, jnp.asarray([0, 2])]
 
     def light(p, v):
         return with_light(shared_light(rig.env_direction, rig.env_weight, p.position.shape[0]),
-                          fire_light(samples, p.position, v, n_fires))
+                          fire_light(samples, p.position, v, fire_xz))
 
     g_rad = shade_performer(scene.mats, points, light(points, vis[:n_g]), blend=blend)
     r_rad = shade_performer(scene.mats, mirrored, light(mirrored, vis[n_g:]), blend="nearest")
 
-    # the stage: its static light, each fire's light by the flame's mean radiance this frame,
+    # the stage: its static light, each fire's light by its cells' mean radiance this frame,
     # past the performer's shadow
-    mean = jnp.mean(emission, axis=(1, 2))                                     # Q 3
+    cells = cell_radiance(emission)                                             # Q B G 3
     st = rig.stage
-    s_rad = st.env + st.rho_d / jnp.pi * ((st.fire_unit * shade.T) @ mean)
+    s_rad = st.env + st.rho_d / jnp.pi * jnp.einsum("pqbg,pq,qbgc->pc", st.fire_unit, shade.T, cells)
     mi = rig.mirror
-    m_rad = mi.env + mi.rho_d / jnp.pi * (mi.fire_unit @ mean)
+    m_rad = mi.env + mi.rho_d / jnp.pi * jnp.einsum("mqbg,qbgc->mc", mi.fire_unit, cells)
 
     # the reflection: the mirrored stage, sky, performer and flames, blurred by the roughness, times Fresnel
     reflected = rig.mirrored_sky.reshape(h * w, 3).at[mi.index].set(m_rad)
@@ -320,12 +320,13 @@ def grown(rig: NohRig, counts: FrameCounts) -> NohRig | None:
 
 def render_sequence(scene: NohScene, *, frames: int, key: PRNGKeyArray, k_env: int = 20, k_fire: int = 20,
                     frame_dt: float = 0.1, shadow_resolution: int = 512, progress=None, time_repeats: int = 0,
-                    info: dict | None = None) -> tuple[list[np.ndarray], NohRig]:
+                    info: dict | None = None, states: list | None = None) -> tuple[list[np.ndarray], NohRig]:
     """`frames` frames `frame_dt` s apart (the flames cycle through their frames), each
     continuing the robe from the previous one; then `time_repeats` more frames (continuing the
     dance, discarded) timed into `info["timed_s"]`. A frame that needs larger buffers than the
     rig has is rendered again with grown ones (one more compile). `info` also gets `prepare_s`,
-    `compile_s` (the first frame), `frame_s`, `recompiles` and `performer_mask` (frame 0)."""
+    `compile_s` (the first frame), `frame_s`, `recompiles` and `performer_mask` (frame 0); `states`
+    (a list) each frame's robe state as rendered (`performer.performer_mesh` of it is the frame's mesh)."""
     k_env_key, k_frames = jax.random.split(key)
     t0 = time.perf_counter()
     rig = jax.block_until_ready(prepare_rig(scene, key=k_env_key, k_env=k_env, shadow_resolution=shadow_resolution,
@@ -350,6 +351,8 @@ def render_sequence(scene: NohScene, *, frames: int, key: PRNGKeyArray, k_env: i
             mask0 = np.asarray(counts.performer_mask)
         if i < frames:
             out.append(np.asarray(image, np.float32))
+            if states is not None:
+                states.append(new_state)
             if progress is not None:
                 progress(1)
     if info is not None:

@@ -8,6 +8,8 @@ Its texture space has two pages: v in [0, 1) is the robe's label mask, v in [1, 
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -51,6 +53,16 @@ class PerformerMesh(eqx.Module):
     triangles: Int[Array, "T 3"]
 
 
+class ExportedMesh(NamedTuple):
+    """A mesh for other tools: each point once (`triangles` into `vertices`), the texture's
+    coordinates by corner (`uv_triangles` into `uv`: a point on a seam has two)."""
+
+    vertices: np.ndarray      # V 3, world space, metres, y up
+    triangles: np.ndarray     # T 3
+    uv: np.ndarray            # U 2
+    uv_triangles: np.ndarray  # T 3
+
+
 def _capsule_template() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Unit capsule along +z from 0 to 1 (radius 1 in x, y): (along, offset direction, triangles,
     uv). A vertex lies at a + along (b - a) + radius * direction (in the capsule's frame). The
@@ -80,6 +92,18 @@ def _capsule_template() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 _ALONG, _DIRECTION, _CAPSULE_TRIS, _CAPSULE_UV = _capsule_template()
+
+
+def _capsule_weld() -> np.ndarray:
+    """Each template vertex's representative where the template repeats a point for its uv: the
+    seam's last column is its first, each pole's ring is one point (the closed capsule)."""
+    idx = np.arange(len(_ALONG)).reshape(-1, _AROUND + 1)
+    idx[:, -1] = idx[:, 0]
+    idx[0, :], idx[-1, :] = idx[0, 0], idx[-1, 0]
+    return idx.ravel()
+
+
+_CAPSULE_WELD = _capsule_weld()
 
 
 def _region_uv(region: str, st: np.ndarray) -> np.ndarray:
@@ -178,6 +202,33 @@ def performer_mesh(rig: PerformerRig, state: ClothState) -> PerformerMesh:
     triangles = jnp.concatenate([costume.triangles, cap_t.reshape(-1, 3) + n_robe,
                                  rig.mask_triangles + n_robe + n_caps * n_cv])
     return PerformerMesh(vertices, normals, uv, triangles)
+
+
+def _welded(mesh: PerformerMesh, triangles: np.ndarray, same: np.ndarray) -> ExportedMesh:
+    """The `triangles` of `mesh` with the vertices `same` maps to one representative made one
+    point (the triangles that collapse dropped)."""
+    t = np.asarray(triangles)
+    w = same[t]
+    keep = (w[:, 0] != w[:, 1]) & (w[:, 1] != w[:, 2]) & (w[:, 2] != w[:, 0])
+    points, point_tris = np.unique(w[keep], return_inverse=True)
+    corners, uv_tris = np.unique(t[keep], return_inverse=True)
+    return ExportedMesh(np.asarray(mesh.vertices, np.float64)[points], point_tris.reshape(-1, 3),
+                        np.asarray(mesh.uv, np.float64)[corners], uv_tris.reshape(-1, 3))
+
+
+def exported_meshes(mesh: PerformerMesh, rig: PerformerRig) -> tuple[ExportedMesh, ExportedMesh]:
+    """(body, robe) of `performer_mesh(rig, state)` as rendered, for other tools: the body is the
+    capsules (each a closed mesh: its seam and poles welded) and the mask (an open surface); the
+    robe is its simulated vertices (the rendered ones repeat those on the pattern's seams)."""
+    render_index = np.asarray(rig.costume.render_index)
+    n_robe, n_robe_tris = len(render_index), rig.costume.triangles.shape[0]
+    _, first, inverse = np.unique(render_index, return_index=True, return_inverse=True)
+    n_caps, n_cv = int(rig.shown.shape[0]), len(_ALONG)
+    caps = (n_robe + np.arange(n_caps)[:, None] * n_cv + _CAPSULE_WELD[None]).ravel()
+    n = mesh.vertices.shape[0]
+    same = np.concatenate([first[inverse.reshape(-1)], caps, np.arange(n_robe + caps.size, n)])
+    triangles = np.asarray(mesh.triangles)
+    return _welded(mesh, triangles[n_robe_tris:], same), _welded(mesh, triangles[:n_robe_tris], same)
 
 
 def _smooth(x, e0, e1):

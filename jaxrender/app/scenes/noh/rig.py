@@ -23,11 +23,12 @@ from jaxrender.lights import env_radiance, sample_envmap
 from .performer import performer_mesh
 from .scene import NohScene
 from .shading import quad_hits
-from .stage import FLAME_SIZE, StageHits, cast_stage, stage_occluded
+from .stage import FLAME_SIZE, StageHits, _chunked, basket_hides, cast_stage, hidden_length, stage_occluded
 
 STAGE_ROUGHNESS = 0.03   # radians: the spread of the polished floor's reflected rays
 FAR_BEYOND = 100.0       # m: what the floor reflects of the sky lies this far beyond it (for the blur)
-_FLAME_POINTS = (4, 2)   # rows x columns of points over each flame quad for its unit irradiance
+FLAME_CELLS = (8, 4)     # bands x column groups over each flame: a frame lights the stage by their mean radiance
+_COLUMNS = 4             # columns of points in each group (one point per column and band)
 
 
 class StagePixels(eqx.Module):
@@ -39,7 +40,7 @@ class StagePixels(eqx.Module):
     index: Int[Array, " P"]
     rho_d: Float[Array, "P 3"]
     env: Float[Array, "P 3"]
-    fire_unit: Float[Array, "P Q"]
+    fire_unit: Float[Array, "P Q B G"]
     shadow_uv: Float[Array, "P 2"]
     coat: Float[Array, "H W"]
     t: Float[Array, "H W"]
@@ -52,7 +53,7 @@ class MirrorPixels(eqx.Module):
     index: Int[Array, " M"]
     rho_d: Float[Array, "M 3"]
     env: Float[Array, "M 3"]
-    fire_unit: Float[Array, "M Q"]
+    fire_unit: Float[Array, "M Q B G"]
     stop: Float[Array, "H W"]          # the unfolded distance to what is mirrored (0 off the polish)
     beyond: Float[Array, "H W"]
 
@@ -161,22 +162,61 @@ def _shadow_frames(centers: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin: 
     return np.asarray(centers), np.asarray(rotations), tan_c * margin
 
 
-def _flame_points(scene: NohScene) -> tuple[Array, float]:
-    """Points spread over each flame quad (Q M 3) and the area each stands for."""
+def flame_grid(scene: NohScene) -> tuple[Array, Array, float]:
+    """Each flame's points, one per band and column (Q B G C 3: `FLAME_CELLS` bands from the top,
+    as the emission's rows, x groups of `_COLUMNS` columns), its bands' bottom and top heights
+    (Q B 2) and the area each point stands for."""
     fl = scene.fires
-    rows, cols = _FLAME_POINTS
-    s = (jnp.arange(cols, dtype=fl.center.dtype) + 0.5) / cols * 2 - 1
-    t = (jnp.arange(rows, dtype=fl.center.dtype) + 0.5) / rows * 2 - 1
-    ss, tt = jnp.meshgrid(s, t, indexing="xy")
-    pts = (fl.center[:, None] + ss.reshape(1, -1, 1) * fl.u[:, None] + tt.reshape(1, -1, 1) * fl.v[:, None])
-    return pts, FLAME_SIZE[0] * FLAME_SIZE[1] / (rows * cols)
+    dtype = fl.center.dtype
+    bands, groups = FLAME_CELLS
+    cols = groups * _COLUMNS
+    s = ((jnp.arange(cols, dtype=dtype) + 0.5) / cols * 2 - 1).reshape(groups, _COLUMNS)   # -1..1 along u
+    t = 1 - (jnp.arange(bands, dtype=dtype) + 0.5) / bands * 2                 # 1..-1 along v (top first)
+    pts = (fl.center[:, None, None, None] + s[None, None, :, :, None] * fl.u[:, None, None, None]
+           + t[None, :, None, None, None] * fl.v[:, None, None, None])
+    edge = 1 - jnp.arange(bands + 1, dtype=dtype) / bands * 2
+    heights = fl.center[:, 1:2] + edge[None] * fl.v[:, 1:2]                    # Q B+1, decreasing
+    return pts, jnp.stack([heights[:, 1:], heights[:, :-1]], -1), FLAME_SIZE[0] * FLAME_SIZE[1] / (cols * bands)
+
+
+def cell_radiance(emission: Float[Array, "Q Hf Wf 3"]) -> Float[Array, "Q B G 3"]:
+    """Each flame's mean radiance in each of its `FLAME_CELLS` (bands of rows from the top x groups
+    of columns)."""
+    def shares(n: int, parts: int) -> np.ndarray:        # (parts, n): each texel's share of each part
+        edge = np.arange(parts + 1) / parts
+        lo, hi = np.arange(n) / n, (np.arange(n) + 1) / n
+        return np.clip(np.minimum(hi[None], edge[1:, None]) - np.maximum(lo[None], edge[:-1, None]), 0, None) * parts
+
+    bands, groups = FLAME_CELLS
+    rows = jnp.asarray(shares(emission.shape[1], bands), emission.dtype)
+    cols = jnp.asarray(shares(emission.shape[2], groups), emission.dtype)
+    return jnp.einsum("bh,gw,qhwc->qbgc", rows, cols, emission)
+
+
+def _fire_unit(scene: NohScene, position: Array, normal: Array) -> Float[Array, "N Q B G"]:
+    """Per fire and cell, the irradiance of a flame of unit radiance at stage points: a point per
+    band and column (cosine over r^2, the flame a billboard facing every point), the part of each
+    band its basket hides from the point taken away exactly (`stage.basket_hides`)."""
+    pts, heights, area = flame_grid(scene)
+    q, b, g, c = pts.shape[:4]
+    d = pts[None] - position[:, None, None, None, None]                         # N Q B G C 3
+    r2 = jnp.maximum(jnp.sum(d * d, -1), 1e-6)
+    cos_r2 = jnp.maximum(jnp.einsum("nqbgck,nk->nqbgc", d, normal), 0.0) / r2 ** 1.5
+    columns = pts[:, 0].reshape(q * g * c, 3)
+    centre = jnp.repeat(scene.fires.center[:, jnp.asarray([0, 2])], g * c, axis=0)
+    lo, hi = basket_hides(position, columns, centre)                           # N QGC 4
+    lo, hi = lo.reshape(-1, q, 1, g, c, 4), hi.reshape(-1, q, 1, g, c, 4)
+    bottom, top = heights[None, :, :, None, None, 0], heights[None, :, :, None, None, 1]
+    hidden = hidden_length(lo, hi, bottom, top) / (top - bottom)
+    return jnp.sum(cos_r2 * (1 - hidden), axis=-1) * area
 
 
 def static_light(scene: NohScene, position: Array, normal: Array, env_dir: Array, env_weight: Array
-                 ) -> tuple[Float[Array, "N 3"], Float[Array, "N Q"]]:
-    """(environment irradiance / pi, per-fire unit irradiance) at stage points, the stage's own
-    shadows included: the environment's K samples against the quads that shadow the sky, each
-    fire against every quad toward its flame's centre (one batch of rays each)."""
+                 ) -> tuple[Float[Array, "N 3"], Float[Array, "N Q B G"]]:
+    """(environment irradiance / pi, per-fire and cell unit irradiance) at stage points, the
+    stage's own shadows included: the environment's K samples against the quads that shadow the
+    sky, each fire against every quad toward its flame's centre (one batch of rays each) and its
+    basket against each band of each column (`_fire_unit`)."""
     lifted = position + 1e-3 * normal
     n, k = position.shape[0], env_dir.shape[0]
     dtype = position.dtype
@@ -185,17 +225,13 @@ def static_light(scene: NohScene, position: Array, normal: Array, env_dir: Array
     lit = 1.0 - stage_occluded(scene.stage, origins, dirs, jnp.full((n * k,), jnp.inf, dtype), occluders_only=True)
     cos = jnp.maximum(normal @ env_dir.T, 0.0) * lit.reshape(n, k)            # N K
     env = cos @ env_weight
-    pts, area = _flame_points(scene)
-    q = pts.shape[0]
-    d = pts[None] - position[:, None, None]                                   # N Q M 3
-    r2 = jnp.maximum(jnp.sum(d * d, -1), 1e-6)
-    cos_f = jnp.maximum(jnp.einsum("nqmc,nc->nqm", d, normal), 0.0) / jnp.sqrt(r2)
-    g = jnp.sum(cos_f / r2, -1) * area                                        # N Q
+    q = scene.fires.center.shape[0]
+    unit = _chunked(lambda p, nn: _fire_unit(scene, p, nn), position, normal, chunk=1024)
     to = scene.fires.center[None] - lifted[:, None]                           # N Q 3
     dist = jnp.linalg.norm(to, axis=-1)
     seen = 1.0 - stage_occluded(scene.stage, jnp.repeat(lifted, q, axis=0), (to / dist[..., None]).reshape(-1, 3),
                                 (dist - 0.05).reshape(-1))
-    return env / jnp.pi, g * seen.reshape(n, q)
+    return env / jnp.pi, unit * seen.reshape(n, q, 1, 1)
 
 
 def _pixel_grid(ph: Pinhole, step: int, dtype) -> Array:
@@ -288,7 +324,7 @@ def prepare_rig(scene: NohScene, *, key: PRNGKeyArray, k_env: int = 20, shadow_r
     t_stage = hits.t.reshape(h, w)
     stage = StagePixels(index, rho, env[:n_p] * rho, unit[:n_p], shadow_uv, coat, t_stage)
     m_env = jnp.where(m_seen[:, None], env[n_p:] * m_hits.rho_d, sky)
-    m_unit = jnp.where(m_seen[:, None], unit[n_p:], 0.0)
+    m_unit = jnp.where(m_seen[:, None, None, None], unit[n_p:], 0.0)
     beyond = jnp.full((h * w,), FAR_BEYOND, dtype).at[m_index].set(jnp.where(m_seen, m_hits.t, FAR_BEYOND))
     stop = jnp.zeros((h * w,), dtype).at[m_index].set(hits.t[m_index] + jnp.where(m_seen, m_hits.t, jnp.inf))
     mirror = MirrorPixels(m_index, m_hits.rho_d, m_env, m_unit, stop.reshape(h, w), beyond.reshape(h, w))

@@ -16,7 +16,7 @@ from jaxrender.shadows import ShadowMap, pcss
 
 from .mask import LABELS, TAKES_COLOUR
 from .performer import PerformerMesh
-from .stage import FLAME_SIZE
+from .stage import FLAME_SIZE, basket_hides, is_hidden
 
 
 class PerformerPoints(eqx.Module):
@@ -92,13 +92,17 @@ def shade_performer(mats: MaterialSet, points: PerformerPoints, light: SurfaceLi
 
 
 def fire_light(samples: QuadLightSamples, points: Float[Array, "N 3"], vis: Float[Array, "N Q"],
-               n_fires: int) -> SurfaceLight:
-    """The K flame samples seen from each point, weighted by that fire's visibility there."""
+               fire_xz: Float[Array, "Q 2"]) -> SurfaceLight:
+    """The K flame samples seen from each point, weighted by that fire's visibility there and
+    by whether the fire's basket hides the sample from the point (`stage.basket_hides`)."""
+    n_fires = fire_xz.shape[0]
     k = samples.position.shape[0]
     onehot = (samples.light[:, None] == jnp.arange(n_fires, dtype=jnp.int32)[None, :]).astype(points.dtype)   # K Q
+    lo, hi = basket_hides(points, samples.position, fire_xz[samples.light])
+    open_ = 1.0 - is_hidden(lo, hi, jnp.broadcast_to(samples.position[:, 1], lo.shape[:2])).astype(points.dtype)
     d = samples.position[None, :, :] - points[:, None, :]
     r2 = jnp.maximum(jnp.sum(d * d, -1), 1e-8)
-    g = (vis @ onehot.T) / (r2 * samples.pdf_area[None, :] * k)          # billboard flames: |cos_y| = 1
+    g = (vis @ onehot.T) * open_ / (r2 * samples.pdf_area[None, :] * k)          # billboard flames: |cos_y| = 1
     return SurfaceLight(d / jnp.sqrt(r2)[..., None], samples.radiance[None, :, :] * g[..., None])
 
 

@@ -17,8 +17,9 @@ from jaxtyping import Array, Float, Int
 
 from jaxrender.maths import default_float
 
-__all__ = ["StageGeometry", "StageHits", "build_stage", "cast_stage", "stage_occluded", "FIRE_SITES", "FLAME_SIZE",
-           "FLAME_BASE", "MATERIALS"]
+__all__ = ["StageGeometry", "StageHits", "build_stage", "cast_stage", "stage_occluded", "basket_hides", "is_hidden",
+           "hidden_length", "FIRE_SITES",
+           "FLAME_SIZE", "FLAME_BASE", "BASKET", "MATERIALS"]
 
 HALF = 2.95            # the main stage's half width (3 ken = 5.9 m)
 BACK = -5.2            # the back wall (behind the musicians' area)
@@ -28,6 +29,7 @@ BEAM = 4.3             # underside of the ceiling
 FIRE_SITES = ((-3.3, 4.0), (3.3, 4.0), (-4.4, 0.2), (4.4, 0.4))   # (x, z) of the kagaribi
 FLAME_SIZE = (0.55, 0.8)                                          # width, height (m)
 FLAME_BASE = 0.75                                                 # the baskets' rim above the stage floor
+BASKET = (0.2, 0.25)                                              # a basket's half side and depth below its rim (m)
 MATERIALS = ("floor", "pillar", "pine_wall", "dark_wood", "roof", "gravel", "skirt", "bamboo_wall", "iron",
              "rail")
 
@@ -121,7 +123,8 @@ def build_stage() -> StageGeometry:
             width = np.cross(along, [0.0, 0.0, 1.0] if abs(np.sin(ang)) < 0.7 else [1.0, 0.0, 0.0])
             width = 0.025 * width / np.linalg.norm(width)
             q.append(((foot + head) / 2, along, width, "iron", False))
-        _box(q, (x - 0.2, top - 0.25, z - 0.2), (x + 0.2, top, z + 0.2), "iron", "xXzZ", occluder=False)
+        half, depth = BASKET
+        _box(q, (x - half, top - depth, z - half), (x + half, top, z + half), "iron", "xXzZ", occluder=False)
     dtype = default_float()
     return StageGeometry(jnp.asarray(np.asarray([e[0] for e in q], float), dtype),
                          jnp.asarray(np.asarray([e[1] for e in q], float), dtype),
@@ -193,6 +196,53 @@ def stage_occluded(stage: StageGeometry, origins: Float[Array, "N 3"], direction
     hit = _chunked(lambda o, d, m: jnp.any(_plane_hits(stage, o, d)[0] < m[:, None], axis=1), origins, directions,
                    max_t)
     return hit.astype(origins.dtype)
+
+
+def basket_hides(points: Float[Array, "N 3"], targets: Float[Array, "M 3"], fire_xz: Float[Array, "M 2"]
+                 ) -> tuple[Float[Array, "N M 4"], Float[Array, "N M 4"]]:
+    """(lo, hi), N x M x 4: for each of the four vertical sides of the basket (`BASKET`, its rim at
+    `FLAME_BASE`) of the fire at `fire_xz`, the heights h for which it hides the point (x, h, z)
+    of target m's vertical line from point n (none where lo > hi). Exact: the segment from a
+    point to (x, h, z) crosses a side's plane at a fraction lambda of its length that does not
+    depend on h (the plane is vertical), at the height p_y + lambda (h - p_y); the side hides the
+    h that put that height between the basket's bottom and its rim. The basket is open at the top
+    and the bottom, so a segment can pass under it, through it and out over the rim: the sides'
+    intervals need not touch (`hidden_length`, `is_hidden`; docs/noh.md, "The stage")."""
+    half, depth = BASKET
+    p = [points[:, k][:, None] for k in range(3)]
+    f = [targets[:, k][None] for k in range(3)]
+    centre = {0: fire_xz[:, 0][None], 2: fire_xz[:, 1][None]}
+    lo, hi = [], []
+    for axis, other in ((0, 2), (2, 0)):
+        for sign in (-1.0, 1.0):
+            plane = centre[axis] + sign * half
+            step = f[axis] - p[axis]
+            lam = (plane - p[axis]) / jnp.where(jnp.abs(step) > 1e-12, step, 1e-12)
+            across = p[other] + lam * (f[other] - p[other])
+            ok = (lam > 0) & (lam < 1) & (jnp.abs(across - centre[other]) <= half)
+            safe = jnp.where(ok, lam, 1.0)
+            lo.append(jnp.where(ok, p[1] + (FLAME_BASE - depth - p[1]) / safe, jnp.inf))
+            hi.append(jnp.where(ok, p[1] + (FLAME_BASE - p[1]) / safe, -jnp.inf))
+    return jnp.stack(lo, -1), jnp.stack(hi, -1)
+
+
+def is_hidden(lo: Array, hi: Array, h: Array) -> Array:
+    """Whether height h lies in one of the sides' intervals (`basket_hides`; the last axis)."""
+    return jnp.any((h[..., None] >= lo) & (h[..., None] <= hi), axis=-1)
+
+
+def hidden_length(lo: Array, hi: Array, bottom: Array, top: Array) -> Array:
+    """The length of [bottom, top] inside the union of the sides' intervals (`basket_hides`; the
+    last axis): the sum of each one's part less the pairs' common parts (a segment crosses at most
+    two sides of the square basket: exact)."""
+    def part(a, b, low, high):
+        return jnp.clip(jnp.minimum(b, high) - jnp.maximum(a, low), 0.0, None)
+
+    total = jnp.sum(part(lo, hi, bottom[..., None], top[..., None]), axis=-1)
+    for i in range(4):
+        for j in range(i + 1, 4):
+            total = total - part(jnp.maximum(lo[..., i], lo[..., j]), jnp.minimum(hi[..., i], hi[..., j]), bottom, top)
+    return total
 
 
 def _noise(x: Array, y: Array, seed: float) -> Array:

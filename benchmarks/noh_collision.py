@@ -1,0 +1,81 @@
+"""The robe against the performer's body as rendered, on triangles, over whole dances: how many
+robe triangles go through the body per frame and how deep (`tests/robe_contact.py`: segment-triangle
+and winding-number tests in float64, nothing of the simulator's capsules), the robe's largest
+move per frame (it still moves freely), and what the check costs per frame.
+
+The robe is simulated as `jaxrender noh` simulates it (float32 unless JAX_ENABLE_X64=1), 0.1 s a
+frame: the whole built-in dance (6 s, 60 frames) and the whole captured dance
+(dance-short_normal_001.bvh, 63 s, 633 frames). Rows "Noh robe" to benchmarks/results/noh_collision.json.
+
+Run: `python benchmarks/noh_collision.py` (`--quick`: 0.5 s of each, nothing written).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from _results import cpu_description, write_results  # noqa: E402
+from robe_contact import BodyShape, contact, dance_performer, performer_frames  # noqa: E402
+
+from jaxrender.io import read_bvh  # noqa: E402
+from sims import noh_dance  # noqa: E402
+
+MOCAP = Path(os.environ.get("JAXRENDER_MOCAP", Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"))
+CAPTURED = "dance-short_normal_001.bvh"
+FRAME_DT = 0.1
+
+
+def measure(label: str, bvh, duration: float) -> dict:
+    performer = dance_performer(bvh, duration=duration)
+    frames = int(round(duration / FRAME_DT))
+    shape, previous, rows, seconds = None, None, [], []
+    for body, robe in performer_frames(performer, frames, FRAME_DT):
+        t0, c0 = time.perf_counter(), time.process_time()
+        shape = BodyShape(body.vertices, body.triangles) if shape is None else shape.moved(body.vertices)
+        c = contact(robe.vertices, robe.triangles, shape)
+        seconds.append((time.perf_counter() - t0, time.process_time() - c0))
+        move = 0.0 if previous is None else float(np.linalg.norm(robe.vertices - previous, axis=-1).max())
+        previous = robe.vertices
+        rows.append((c.triangles, c.depth, c.crossing_edges, c.inside_vertices, move))
+    a = np.asarray(rows)
+    wall, cpu = np.median(np.asarray(seconds[1:] or seconds), axis=0)
+    out = dict(label=label, frames=frames, robe_triangles=len(robe.triangles), body_triangles=len(body.triangles),
+               closed_parts=int(shape.closed.sum()), through_total=int(a[:, 0].sum()),
+               through_max=int(a[:, 0].max()), frames_with=int((a[:, 0] > 0).sum()), deepest_m=float(a[:, 1].max()),
+               largest_move_m=float(a[:, 4].max()), check_wall_s=float(wall), check_cpu_s=float(cpu),
+               load=os.getloadavg()[0])
+    print(out, flush=True)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="0.5 s of each dance, nothing written")
+    args = parser.parse_args()
+    captured = read_bvh(MOCAP / CAPTURED)
+    whole = captured.motion.shape[0] * captured.frame_time
+    runs = [measure("built-in", noh_dance(), 0.5 if args.quick else 6.0),
+            measure("captured", captured, 0.5 if args.quick else FRAME_DT * int(whole / FRAME_DT))]
+    rows = []
+    for r in runs:
+        status = "met" if r["through_total"] == 0 else "missed"
+        rows.append(dict(
+            area="noh", target=f"0 robe triangles through the body as rendered, {r['label']} dance",
+            measured=f"{r['through_total']} triangles through over {r['frames']} frames (most in a frame "
+                     f"{r['through_max']}, deepest {1000 * r['deepest_m']:.1f} mm); robe's largest move per frame "
+                     f"{100 * r['largest_move_m']:.1f} cm; check {r['check_cpu_s']:.2f} s CPU per frame, load "
+                     f"{r['load']:.1f}, {cpu_description()}",
+            status=status, figures=r))
+    write_results("noh_collision", rows, quick=args.quick)
+
+
+if __name__ == "__main__":
+    main()
