@@ -1,212 +1,148 @@
-"""Light shafts at interactive rates: the equiangular method against the ray march and
-the sample planes, each at settings around 2 % error, whole frames (shadow maps and surfaces
-included), float32, compile time apart.
+"""Light shafts at interactive rates: the default method (adaptive: in-scattering on a coarse grid,
+refined where it changes fast or a silhouette crosses a lit cell) against the equiangular method at
+every pixel and the ray march, whole frames (shadow maps and surfaces included), float32, compile
+time apart, with light maps of realistic sizes; and the gradient's cost for every parameter.
 
-    python benchmarks/shafts_interactive.py [--quick] [--size 720x480] [--ref-samples 256]
+    python benchmarks/shafts_interactive.py [--quick] [--size 720x480] [--ref-samples 256] [--repeats 3]
+                                            [--sections frames,maps,gradient]
 
-Scenes: "spot" = examples/scenes/spot_sphere.json with the polka-dot light map dots.png (one
-textured spot, a sphere, a floor); "stage" = the gallery's five-spot stage (two light maps).
-Error: relative RMS of the in-scattered light (design.md) against a converged ray march
-(`--ref-samples`, shadow rays). Times: min / median / max wall and median CPU seconds (this
-process, all threads) of `--repeats` frames; the machine is shared: the load average is printed.
-Outputs: a table (stdout and benchmarks/results/shafts_interactive.json), the error-vs-time plot
-benchmarks/figures/shafts_interactive.png, and renders benchmarks/figures/shafts_interactive_*.png.
+Scenes: "spot" = examples/scenes/spot_sphere.json with a 256 x 256 polka-dot light map (one
+textured spot, a sphere, a floor); "stage" = the gallery's five-spot stage with three of its spots
+projecting 256 x 256 polka-dot maps; "fog" = benchmarks/_shafts_common.py's grid-fog scene (three
+spots, a light map, occluders, a density grid) for the gradient.
+
+1. frames: each method at a few settings on the spot and the stage; error = relative RMS of the
+   in-scattered light (design.md) against a converged ray march (`--ref-samples`, shadow rays);
+   the cheapest setting of each reaching 2 %, the ray march's time over ours on the stage at equal
+   error, and the error within 2 pixels of a depth edge (the halo check) on the stage.
+2. maps: the spot with 64^2, 256^2 and 1024^2 light maps (the same dots), the default method at
+   the setting of section 1: frame time and error per map size.
+3. gradient: value_and_grad of an image loss over its forward time, for each parameter alone and all
+   at once, uniform fog (spot) and grid fog (fog scene).
+
+Times: min / median / max wall and median CPU seconds (this process, all threads) of `--repeats`
+frames; the machine may be shared: the load average is printed with each row, and the CPU named.
+Outputs: tables on stdout, benchmarks/results/shafts_interactive.json (the headline rows), the
+error-vs-time plot benchmarks/figures/shafts_interactive.png and renders
+benchmarks/figures/shafts_interactive_{spot,stage}.png.
 """
 
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import matplotlib
 import numpy as np
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 
-from _results import write_results  # noqa: E402
+import _shafts_common as C  # noqa: E402
+from _results import cpu_description, write_results  # noqa: E402
 
-from jaxrender.app.scenes import load_stage_scene, shafts_scene_from_dict  # noqa: E402
+from jaxrender.app.scenes import shafts_scene_from_dict, stage_scene_dict  # noqa: E402
+from jaxrender.app.scenes.stage import DATA  # noqa: E402
 from jaxrender.io import write_image  # noqa: E402
-from jaxrender.shadows import render_shadow_map  # noqa: E402
-from jaxrender.shafts import render_equiangular, render_planes, render_raymarch  # noqa: E402
-from jaxrender.shafts._equiangular import (  # noqa: E402
-    active_rays_map,
-    bake_light_map,
-    equiangular_scattering,
-    primary_hits,
-)
-from jaxrender.shafts._model import (  # noqa: E402
-    FAR,
-    cone_intervals,
-    light_reach,
-    shadow_map_visibility,  # noqa: E402
-    surface_term,
-)
+from jaxrender.shafts import render_adaptive, render_equiangular, render_raymarch  # noqa: E402
+from jaxrender.shafts._equiangular import primary_hits  # noqa: E402
 
 TARGET = 0.02
+SPOT_LIMIT_S, STAGE_LIMIT_S, RAYMARCH_RATIO, GRAD_RATIO = 0.04, 0.17, 17.0, 5.0
+EDGE_JUMP = 0.05  # a depth edge: depth off the mean of its two row / column neighbours by > 5 % (as the halo test)
 FIGURES = HERE / "figures"
 
 
-def spot_scene(width, height):
+def light_map_file(directory: Path, n: int) -> str:
+    """The polka-dot light map at n x n texels (the same 4 x 4 dots at every size), as an EXR."""
+    return C.write_light_map(directory, f"dots_{n}.exr", C.polka_dots(n, dots=4))
+
+
+def spot_scene(width, height, directory: Path, map_size: int = 256):
     d = json.loads((ROOT / "examples" / "scenes" / "spot_sphere.json").read_text())
-    d["spotlights"][0]["light_map"] = "dots.png"
-    return shafts_scene_from_dict(d, base_dir=ROOT / "examples" / "scenes").with_size(width, height)
+    d["spotlights"][0]["light_map"] = str(directory / light_map_file(directory, map_size))
+    return shafts_scene_from_dict(d, base_dir=directory).with_size(width, height)
 
 
-def frame_times(fn, scene, repeats):
+def stage_scene(width, height, directory: Path, map_size: int = 256):
+    """The five-spot stage with its two textured spots and the middle one carrying n x n maps."""
+    d = stage_scene_dict()
+    name = str(directory / light_map_file(directory, map_size))
+    for spot in (d["spotlights"][0], d["spotlights"][1], d["spotlights"][2]):
+        spot["light_map"] = name
+    return shafts_scene_from_dict(d, base_dir=DATA).with_size(width, height)
+
+
+def frame_times(fn, args, repeats):
     """(result, compile s, wall times, median CPU s): the first call apart."""
     t0 = time.perf_counter()
-    out = jax.block_until_ready(fn(scene))
+    out = jax.block_until_ready(fn(*args))
     compile_s = time.perf_counter() - t0
     wall, cpu = [], []
     for _ in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
-        jax.block_until_ready(fn(scene))
+        jax.block_until_ready(fn(*args))
         wall.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
     return out, compile_s, wall, statistics.median(cpu)
 
 
-def rel(x, ref):
-    return float(np.linalg.norm(np.asarray(x, np.float64) - ref) / np.linalg.norm(ref))
+def rel(x, ref, mask=None):
+    d = np.asarray(x, np.float64) - ref
+    if mask is not None:
+        return float(np.linalg.norm(d[mask]) / np.linalg.norm(ref[mask]))
+    return float(np.linalg.norm(d) / np.linalg.norm(ref))
 
 
-def method_fn(method, setting, *, parts: bool):
-    """A jitted frame: the image as `jaxrender shafts` renders it (parts=False, the one timed), or
-    (image, in-scattered part) for the error (parts=True: per-light images kept, not timed)."""
-    if method == "equiangular":
-        n, sm = setting
-        body = lambda s: render_equiangular(s, samples=n, shadow_map=sm, return_parts=parts)  # noqa: E731
-    elif method == "raymarch":
-        body = lambda s: render_raymarch(s, samples=setting, return_parts=parts)  # noqa: E731
-    else:
-        n, m, gpp = setting
-        body = lambda s: render_planes(s, planes=n, subplanes=m, g_per_pixel=gpp, tables=not gpp,  # noqa: E731
-                                       return_parts=parts)
+def depth_edge_band(scene, reach: int = 2) -> np.ndarray:
+    """Pixels within `reach` pixels of a depth edge (misses count as far)."""
+    _, t, *_ = jax.jit(primary_hits)(scene)
+    t = np.where(np.isfinite(np.asarray(t)), np.asarray(t), 1e6)
+    h, w = t.shape
+    edge = np.zeros(t.shape, bool)
+    edge[1:-1, :] |= np.abs(t[:-2, :] - 2 * t[1:-1, :] + t[2:, :]) > EDGE_JUMP * t[1:-1, :]
+    edge[:, 1:-1] |= np.abs(t[:, :-2] - 2 * t[:, 1:-1] + t[:, 2:]) > EDGE_JUMP * t[:, 1:-1]
+    band = np.zeros_like(edge)
+    for dy in range(-reach, reach + 1):
+        for dx in range(-reach, reach + 1):
+            band[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] |= \
+                edge[max(-dy, 0):h + min(-dy, 0), max(-dx, 0):w + min(-dx, 0)]
+    return band
+
+
+METHODS = {"adaptive": render_adaptive, "equiangular": render_equiangular, "raymarch": render_raymarch}
+
+
+def method_fn(method, samples, *, parts: bool):
+    """A jitted frame: the image (parts=False, the one timed) or (image, in-scattered part) for the error."""
+    fn = METHODS[method]
     if not parts:
-        return jax.jit(body)
+        return jax.jit(lambda s: fn(s, samples=samples))
 
     def frame(s):
-        image, (surface, fog) = body(s)
+        image, (_, fog) = fn(s, samples=samples, return_parts=True)
         return image, (sum(fog) if isinstance(fog, list) else fog)
 
     return jax.jit(frame)
 
 
-def label(method, setting):
-    if method == "equiangular":
-        n, sm = setting
-        return f"{n} samples" + (", scene's shadow map (1024)" if sm is None else f", shadow map {sm}")
-    if method == "raymarch":
-        return f"{setting} samples"
-    n, m, gpp = setting
-    return f"{n}x{m}" + (", g per pixel" if gpp else ", mesh 15x10 + tables")
-
-
-def sweep(name, scene, ref, settings, repeats, *, quick=False):
-    rows = []
-    for method, setting in settings:
-        parts_fn = method_fn(method, setting, parts=True)
-        image, fog = parts_fn(scene)
-        err = rel(fog, ref)
-        # quick (a smoke run) times the parts call itself: one compile per setting instead of two
-        timed_fn = parts_fn if quick else method_fn(method, setting, parts=False)
-        _, c, wall, cpu = frame_times(timed_fn, scene, repeats)
-        rows.append(dict(scene=name, method=method, setting=label(method, setting), err=err, compile_s=c,
-                         min_s=min(wall), median_s=statistics.median(wall), max_s=max(wall), cpu_s=cpu,
-                         image=np.asarray(image)))
-        print(f"  {name:5s} {method:11s} {label(method, setting):28s} err {err:.4f}  compile {c:5.1f} s  "
-              f"wall {min(wall):.3f}/{statistics.median(wall):.3f}/{max(wall):.3f} s  cpu {cpu:.3f} s  "
-              f"load {os.getloadavg()[0]:.1f}", flush=True)
-    return rows
-
-
-def frame_profile(scene, samples, repeats, shadow_map=512):
-    """Median wall and CPU seconds of the pieces of an equiangular frame, each jitted on its own
-    from the previous pieces' outputs (so a piece's time is its own), and of the whole frame."""
-    eye, medium, bias = scene.camera.eye, scene.medium, scene.render.shadow_bias
-    hits = jax.jit(primary_hits)(scene)
-    dirs, t_hit, normals, albedo, points = hits
-    surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
-
-    def maps(s):
-        return tuple(render_shadow_map(light, s.prims, resolution=shadow_map) for light in s.lights)
-
-    def intervals(s, d, st):
-        return [cone_intervals(s, light, d, st, light_reach(s, light)) for light in s.lights]
-
-    shadow_maps, cones = jax.jit(maps)(scene), jax.jit(intervals)(scene, dirs, surface_t)
-    baked = jax.jit(lambda s: [bake_light_map(light) for light in s.lights])(scene)
-
-    def surface(s, maps_):
-        return surface_term(s, points, normals, albedo, t_hit, shadow_map_visibility(s, maps_))
-
-    def compaction(cones_):  # the gathers and scatters of active_rays_map around an empty kernel
-        return sum(active_rays_map(lambda d, a, b: d * (b - a)[:, None], dirs, t0, t1) for t0, t1 in cones_)
-
-    def scattering(s, maps_, cones_, baked_):
-        return sum(active_rays_map(functools.partial(equiangular_scattering, light, jax.lax.stop_gradient(sm.depth),
-                                                     bk, eye, rho=medium.rho, kappa=medium.kappa, K=medium.K,
-                                                     bias=bias, samples=samples), dirs, t0, t1)
-                   for light, sm, (t0, t1), bk in zip(s.lights, maps_, cones_, baked_))
-
-    pieces = {"primary hits": (primary_hits, (scene,)), "shadow maps": (maps, (scene,)),
-              "surface shading": (surface, (scene, shadow_maps)),
-              "cone intervals": (intervals, (scene, dirs, surface_t)),
-              "light-map bake": (lambda s: [bake_light_map(light) for light in s.lights], (scene,)),
-              "compaction of active runs (empty kernel)": (compaction, (cones,)),
-              f"in-scattering, {samples} samples (incl. compaction)": (scattering, (scene, shadow_maps, cones, baked)),
-              "whole frame": (lambda s: render_equiangular(s, samples=samples, shadow_map=shadow_map), (scene,))}
-    out = {}
-    for key, (fn, args) in pieces.items():
-        jitted = jax.jit(fn)
-        _, _, wall, cpu = frame_times(lambda a, jitted=jitted: jitted(*a), args, repeats)
-        out[key] = (statistics.median(wall), cpu)
-    return out
-
-
-def gradient_ratio(scene, samples, repeats):
-    weights = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, (scene.camera.height, scene.camera.width, 3)),
-                          dtype=jnp.float32)
-    light = scene.lights[0]
-    params = dict(rho=scene.medium.rho, kappa=scene.medium.kappa, K=scene.medium.K,
-                  intensity=light.intensity, position=light.position)
-
-    def with_params(p):
-        s = eqx.tree_at(lambda s: (s.medium.rho, s.medium.kappa, s.medium.K), scene, (p["rho"], p["kappa"], p["K"]))
-        return eqx.tree_at(lambda s: (s.lights[0].intensity, s.lights[0].position), s, (p["intensity"], p["position"]))
-
-    loss = lambda p: jnp.sum(weights * render_equiangular(with_params(p), samples=samples))  # noqa: E731
-    _, c_f, wall_f, cpu_f = frame_times(jax.jit(loss), params, repeats)
-    _, c_g, wall_g, cpu_g = frame_times(jax.jit(jax.value_and_grad(loss)), params, repeats)
-    return dict(forward_s=statistics.median(wall_f), grad_s=statistics.median(wall_g), compile_grad_s=c_g,
-                ratio_wall=statistics.median(wall_g) / statistics.median(wall_f), ratio_cpu=cpu_g / cpu_f)
-
-
-def stage_ratio_row(eq, rm):
-    """The result row of the ray march's time over ours on the stage, each at its cheapest setting reaching 2 %."""
-    if eq and rm:
-        ratio = rm["median_s"] / eq["median_s"]
-        text = f"{ratio:.2f}x wall, {rm['cpu_s'] / eq['cpu_s']:.2f}x CPU (ray march {rm['setting']})"
-    else:
-        ratio, text = 0.0, "no ratio: a method reached 2 % at none of its settings"
-    return dict(area="shafts", target=">= 17x the ray march at 2 % on the stage", measured=text,
-                status="met" if ratio >= 17 else "missed")
-
-
 def reference(name, scene, samples):
     size = f"{scene.camera.width}x{scene.camera.height}"
-    cache = Path(os.environ.get("TMPDIR", "/tmp")) / f"shafts_ref_{name}_{size}_{samples}.npy"
+    cache = Path(os.environ.get("TMPDIR", "/tmp")) / f"shafts_interactive_ref_{name}_{size}_{samples}.npy"
     if cache.exists():
         return np.load(cache)
     fn = jax.jit(lambda s: render_raymarch(s, samples=samples, batch_size=128, return_parts=True)[1][1])
@@ -217,33 +153,192 @@ def reference(name, scene, samples):
     return ref
 
 
+def sweep(name, scene, ref, settings, repeats, *, band=None, quick=False):
+    rows = []
+    for method, samples in settings:
+        parts_fn = method_fn(method, samples, parts=True)
+        image, fog = parts_fn(scene)
+        err = rel(fog, ref)
+        edge_err = rel(fog, ref, band) if band is not None else float("nan")
+        timed_fn = parts_fn if quick else method_fn(method, samples, parts=False)  # quick: one compile a setting
+        _, c, wall, cpu = frame_times(timed_fn, (scene,), repeats)
+        rows.append(dict(scene=name, method=method, samples=samples, err=err, edge_err=edge_err, compile_s=c,
+                         min_s=min(wall), median_s=statistics.median(wall), max_s=max(wall), cpu_s=cpu,
+                         load=os.getloadavg()[0], image=np.asarray(image)))
+        print(f"  {name:5s} {method:11s} {samples:3d} samples  err {100 * err:5.2f} %  within 2 px of edges "
+              f"{100 * edge_err:5.2f} %  compile {c:5.1f} s  wall {min(wall):.3f}/{statistics.median(wall):.3f}/"
+              f"{max(wall):.3f} s  cpu {cpu:.3f} s  load {os.getloadavg()[0]:.1f}", flush=True)
+    return rows
+
+
+def cheapest(rows, name, method):
+    ok = [r for r in rows if r["scene"] == name and r["method"] == method and r["err"] <= TARGET]
+    return min(ok, key=lambda r: r["median_s"], default=None)
+
+
+def describe(r):
+    return (f"{1e3 * r['median_s']:.0f} ms wall ({1e3 * r['min_s']:.0f}-{1e3 * r['max_s']:.0f}), "
+            f"{1e3 * r['cpu_s']:.0f} ms CPU, {r['samples']} samples, {100 * r['err']:.2f} %, load {r['load']:.1f}")
+
+
 def plot(rows, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import matplotlib.ticker
-
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for ax, name in zip(axes, ("stage", "spot")):
-        for method, colour in (("equiangular", "C0"), ("planes", "C2"), ("raymarch", "C3")):
-            # in the sweep's order (more samples / planes along each line); the 1024-map variant apart
-            pts = [(r["cpu_s"], r["err"]) for r in rows if r["scene"] == name and r["method"] == method
-                   and "1024" not in r["setting"]]
-            if not pts:
-                continue
-            ax.plot([p[0] for p in pts], [100 * p[1] for p in pts], "o-", color=colour, label=method)
+        for method, colour in (("adaptive", "C0"), ("equiangular", "C1"), ("raymarch", "C3")):
+            pts = [(r["median_s"], r["err"]) for r in rows if r["scene"] == name and r["method"] == method]
+            if pts:
+                ax.plot([p[0] for p in pts], [100 * p[1] for p in pts], "o-", color=colour, label=method)
         ax.axhline(100 * TARGET, color="k", lw=0.8, ls="--")
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("median CPU seconds per frame (both cores)")
-        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # overlapping minor labels
+        ax.set_xlabel("median wall seconds per frame")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_ylabel("relative RMS of in-scattered light (%)")
         ax.set_title(name if name in {r["scene"] for r in rows} else f"{name} (not run)")
         if ax.get_legend_handles_labels()[0]:
             ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def frames(args, w, h, directory, repeats):
+    scenes = {"spot": spot_scene(w, h, directory)}
+    if args.quick:
+        settings = [("adaptive", 16), ("equiangular", 16), ("raymarch", 16)]
+    else:
+        scenes["stage"] = stage_scene(w, h, directory)
+        settings = ([("adaptive", n) for n in (12, 16, 24, 32)] + [("equiangular", n) for n in (16, 24, 32)]
+                    + [("raymarch", n) for n in (16, 24, 32, 48)])
+    rows = []
+    for name, scene in scenes.items():
+        ref = reference(name, scene, 64 if args.quick else args.ref_samples)
+        rows += sweep(name, scene, ref, settings, repeats, band=depth_edge_band(scene), quick=args.quick)
+    FIGURES.mkdir(exist_ok=True)
+    suffix = "_quick" if args.quick else ""
+    plot(rows, FIGURES / f"shafts_interactive{suffix}.png")
+    print("\n| scene | method | samples | rel. RMS | within 2 px of depth edges | compile s | wall s min/median/max "
+          "| CPU s | load |\n|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['scene']} | {r['method']} | {r['samples']} | {100 * r['err']:.2f} % | {100 * r['edge_err']:.2f} % "
+              f"| {r['compile_s']:.1f} | {r['min_s']:.3f} / {r['median_s']:.3f} / {r['max_s']:.3f} | "
+              f"{r['cpu_s']:.3f} | {r['load']:.1f} |")
+    results = []
+    for name, target, limit in (("spot", f"one spot with a 256^2 light map {w}x{h} <= 40 ms at <= 2 %", SPOT_LIMIT_S),
+                                ("stage", f"five-spot stage, three 256^2 maps, {w}x{h} <= 0.17 s at <= 2 %",
+                                 STAGE_LIMIT_S)):
+        if name not in scenes:
+            continue
+        best = cheapest(rows, name, "adaptive")
+        if best is not None:
+            write_image(FIGURES / f"shafts_interactive_{name}{suffix}.png", best["image"], exposure=2.0)
+        old = cheapest(rows, name, "equiangular")
+        old_text = f"; equiangular at every pixel {describe(old)}" if old else ""
+        if best is None:
+            lowest = min(r["err"] for r in rows if r["scene"] == name and r["method"] == "adaptive")
+            results.append(dict(area="shafts", target=target, status="missed",
+                                measured=f"no adaptive setting reached 2 % (lowest {100 * lowest:.2f} %){old_text}"))
+            continue
+        results.append(dict(area="shafts", target=target, measured=f"adaptive {describe(best)}{old_text}",
+                            status="met" if best["median_s"] <= limit else "missed"))
+    if "stage" in scenes:
+        ours, rm = cheapest(rows, "stage", "adaptive"), cheapest(rows, "stage", "raymarch")
+        if ours and rm:
+            ratio = rm["median_s"] / ours["median_s"]
+            text = (f"{ratio:.1f}x wall, {rm['cpu_s'] / ours['cpu_s']:.1f}x CPU (ray march {rm['samples']} samples "
+                    f"{100 * rm['err']:.2f} % in {rm['median_s']:.3f} s; adaptive {ours['samples']} samples "
+                    f"{100 * ours['err']:.2f} % in {ours['median_s']:.3f} s)")
+        else:
+            ratio, text = 0.0, "no ratio: a method reached 2 % at none of its settings"
+        results.append(dict(area="shafts", target=">= 17x the ray march at 2 % on the stage", measured=text,
+                            status="met" if ratio >= RAYMARCH_RATIO else "missed"))
+        edge = [r for r in rows if r["scene"] == "stage" and r["method"] == "adaptive"]
+        if ours:
+            results.append(dict(area="shafts", target="no halo: error within 2 px of a depth edge <= 2 % on the stage",
+                                measured=f"{100 * ours['edge_err']:.2f} % within 2 px of depth edges "
+                                         f"({100 * ours['err']:.2f} % over the image), adaptive {ours['samples']} "
+                                         f"samples; at {', '.join(str(r['samples']) for r in edge)} samples: "
+                                         f"{', '.join('%.2f' % (100 * r['edge_err']) for r in edge)} %",
+                                status="met" if ours["edge_err"] <= TARGET else "missed"))
+    best_spot = cheapest(rows, "spot", "adaptive")
+    return results, (best_spot["samples"] if best_spot else 24)
+
+
+def maps(args, w, h, directory, repeats, samples):
+    sizes = (64, 256, 1024)
+    rows = []
+    for n in sizes:
+        scene = spot_scene(w, h, directory, n)
+        ref = reference(f"spot_map{n}", scene, 64 if args.quick else args.ref_samples)
+        fn = method_fn("adaptive", samples, parts=True)
+        _, fog = fn(scene)
+        _, c, wall, cpu = frame_times(fn if args.quick else method_fn("adaptive", samples, parts=False), (scene,),
+                                      repeats)
+        rows.append(dict(n=n, err=rel(fog, ref), median_s=statistics.median(wall), cpu_s=cpu, compile_s=c,
+                         load=os.getloadavg()[0]))
+        print(f"  spot, {n}^2 light map, adaptive {samples} samples: err {100 * rows[-1]['err']:.2f} %  compile "
+              f"{c:.1f} s  wall {statistics.median(wall):.3f} s  cpu {cpu:.3f} s  load {os.getloadavg()[0]:.1f}",
+              flush=True)
+    spread = max(r["median_s"] for r in rows) / min(r["median_s"] for r in rows)
+    text = "; ".join(f"{r['n']}^2 {1e3 * r['median_s']:.0f} ms wall {1e3 * r['cpu_s']:.0f} ms CPU "
+                     f"{100 * r['err']:.2f} %" for r in rows)
+    return [dict(area="shafts", target=f"spot frame nearly independent of the light map's size (64^2-1024^2), {w}x{h}",
+                 measured=f"slowest / fastest {spread:.2f}x ({text}; adaptive {samples} samples)",
+                 status="met" if spread <= 1.25 else "missed")]
+
+
+def gradient(args, w, h, directory, repeats, save):
+    rng = np.random.default_rng(0)
+    weights = jnp.asarray(rng.uniform(0.5, 1.5, (h, w, 3)), dtype=jnp.float32)
+    fog_dir = Path(tempfile.mkdtemp(dir=directory))
+    scenes = {"uniform fog (spot, 256^2 map)": spot_scene(w, h, directory),
+              "grid fog (fog scene)": C.load(C.fog_scene(w, h, base_dir=fog_dir), fog_dir)}
+    results, table = [], []
+    for label, scene in scenes.items():
+        grid = scene.medium.density is not None
+        p0 = dict(rho=scene.medium.rho, kappa=scene.medium.kappa, K=scene.medium.K,
+                  intensity=[light.intensity for light in scene.lights],
+                  position=[light.position for light in scene.lights])
+        if grid:
+            p0 = dict(values=scene.medium.density.values, **p0)
+
+        def with_params(p, scene=scene, grid=grid):
+            s = eqx.tree_at(lambda s: (s.medium.rho, s.medium.kappa, s.medium.K), scene, (p["rho"], p["kappa"], p["K"]))
+            if grid:
+                s = eqx.tree_at(lambda s: s.medium.density.values, s, p["values"])
+            return eqx.tree_at(lambda s: [x.intensity for x in s.lights] + [x.position for x in s.lights],
+                               s, p["intensity"] + p["position"])
+
+        def loss(p, with_params=with_params):
+            return jnp.sum(weights * render_adaptive(with_params(p)))
+
+        _, c_f, wall_f, cpu_f = frame_times(jax.jit(loss), (p0,), repeats)
+        fwd = statistics.median(wall_f)
+        ratios = {}
+        for keys in [(k,) for k in p0 if k != "intensity"] + [tuple(p0)]:  # intensity: linear, in "all"
+            def part(q, loss=loss, p0=p0):
+                return loss({**p0, **q})
+
+            _, c_g, wall_g, cpu_g = frame_times(jax.jit(jax.value_and_grad(part)), ({k: p0[k] for k in keys},),
+                                                repeats)
+            name = "all" if len(keys) > 1 else keys[0]
+            ratios[name] = (statistics.median(wall_g) / fwd, cpu_g / cpu_f)
+            table.append(f"| {label} | {name} | {fwd:.3f} | {statistics.median(wall_g):.3f} | "
+                         f"{ratios[name][0]:.2f}x | {ratios[name][1]:.2f}x | {c_g:.0f} | {os.getloadavg()[0]:.1f} |")
+            print("  " + table[-1], flush=True)
+        worst = max(ratios, key=lambda k: ratios[k][0])
+        results.append(dict(area="shafts", target=f"gradient <= 5x forward for every parameter, {label}, {w}x{h}",
+                            measured=", ".join(f"{k} {v[0]:.2f}x" for k, v in ratios.items())
+                            + f" wall (CPU: {', '.join(f'{v[1]:.2f}x' for v in ratios.values())}); forward "
+                              f"{1e3 * fwd:.0f} ms, adaptive 24 samples",
+                            status="met" if ratios[worst][0] <= GRAD_RATIO else f"missed ({worst})"))
+        save(results[-1:])  # each fog's row as soon as it is measured (a grid-fog compile takes minutes)
+    print("\n| fog | w.r.t. | forward s | value and gradient s | ratio wall | ratio CPU | compile s | load |\n"
+          "|---|---|---|---|---|---|---|---|\n" + "\n".join(table))
+    return results
+
+
+SECTIONS = ("frames", "maps", "gradient")
 
 
 def main(argv=None) -> int:
@@ -253,87 +348,35 @@ def main(argv=None) -> int:
     parser.add_argument("--size", default="720x480")
     parser.add_argument("--ref-samples", type=int, default=256)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--sections", default=",".join(SECTIONS))
     args = parser.parse_args(argv)
+    sections = [s for s in args.sections.split(",") if s]
+    unknown = [s for s in sections if s not in SECTIONS]
+    if unknown:
+        parser.error(f"--sections: unknown {', '.join(unknown)} (choose from {', '.join(SECTIONS)})")
     w, h = (120, 80) if args.quick else tuple(int(x) for x in args.size.split("x"))
     repeats = 2 if args.quick else args.repeats
-    print(f"{os.cpu_count()} CPU cores, JAX {jax.__version__} ({jax.default_backend()}), float32, {w}x{h}, "
-          f"load average {os.getloadavg()}", flush=True)
-    scenes = {"spot": spot_scene(w, h)}
-    if args.quick:  # a smoke run: the one-light textured spot (the compile grows with the lights), one setting per
-        eq, rm, pl = [(16, 512)], (16,), [(8, 4, True)]  # method (each setting and each profile piece is a compile)
-    else:
-        scenes["stage"] = load_stage_scene(width=w, height=h)
-        eq = [(n, 512) for n in (8, 12, 16, 24, 32)] + [(24, None)]
-        rm, pl = (8, 16, 24, 32, 48), [(8, 4, True), (16, 4, True), (30, 6, False)]
-    rows = []
-    for name, scene in scenes.items():
-        ref = reference(name, scene, 64 if args.quick else args.ref_samples)
-        settings = [("equiangular", s) for s in eq] + [("raymarch", s) for s in rm] + [("planes", s) for s in pl]
-        rows += sweep(name, scene, ref, settings, repeats, quick=args.quick)
-    FIGURES.mkdir(exist_ok=True)
-    suffix = "_quick" if args.quick else ""
-    plot(rows, FIGURES / f"shafts_interactive{suffix}.png")
-    for name in scenes:
-        best = min((r for r in rows if r["scene"] == name and r["method"] == "equiangular" and r["err"] <= TARGET),
-                   key=lambda r: r["median_s"], default=None)
-        if best is not None:
-            write_image(FIGURES / f"shafts_interactive_{name}{suffix}.png", best["image"], exposure=2.0)
+    print(f"{os.cpu_count()} CPU cores of {cpu_description()}, JAX {jax.__version__} ({jax.default_backend()}), "
+          f"float32, {w}x{h}, load average {os.getloadavg()}", flush=True)
+    results, samples, saved = [], 24, []
 
-    summary = {}
-    for name in scenes:
-        for method in ("equiangular", "raymarch", "planes"):
-            ok = [r for r in rows if r["scene"] == name and r["method"] == method and r["err"] <= TARGET]
-            summary[(name, method)] = min(ok, key=lambda r: r["median_s"]) if ok else None
-    best_samples = {name: int(summary[(name, "equiangular")]["setting"].split()[0]) if summary[(name, "equiangular")]
-                    else 24 for name in scenes}
-    profiles = {name: frame_profile(scene, best_samples[name], max(repeats, 5)) for name, scene in scenes.items()}
-    # the gradient's two compiles are half a smoke run: quick skips it (tests/test_shafts_fast.py checks the gradients)
-    grad = None if args.quick else gradient_ratio(scenes["spot"], 24, repeats)
-    for name, prof in profiles.items():
-        print(f"\nwhere the time goes, {name} (median wall s / median CPU s, each piece jitted alone):")
-        for key, (wall, cpu) in prof.items():
-            print(f"  {key:48s} {wall:.4f} / {cpu:.4f}")
-    print(f"gradient: {grad}")
-    print("\n| scene | method | cheapest setting reaching 2 % | rel. RMS | compile s | wall s min/median/max | CPU s |")
-    print("|---|---|---|---|---|---|---|")
-    for (name, method), r in summary.items():
-        if r is None:
-            print(f"| {name} | {method} | none of the settings | | | | |")
-            continue
-        print(f"| {name} | {method} | {r['setting']} | {100 * r['err']:.2f} % | {r['compile_s']:.1f} | "
-              f"{r['min_s']:.3f} / {r['median_s']:.3f} / {r['max_s']:.3f} | {r['cpu_s']:.3f} |")
-    print("\nAll settings:\n\n| scene | method | setting | rel. RMS | compile s | wall s min/median/max | CPU s |")
-    print("|---|---|---|---|---|---|---|")
-    for r in rows:
-        print(f"| {r['scene']} | {r['method']} | {r['setting']} | {100 * r['err']:.2f} % | {r['compile_s']:.1f} | "
-              f"{r['min_s']:.3f} / {r['median_s']:.3f} / {r['max_s']:.3f} | {r['cpu_s']:.3f} |")
+    def save(rows):  # rows written as each section ends: a full run replaces the file, a partial one updates it
+        results.extend(rows)
+        partial = bool(saved) or set(sections) != set(SECTIONS)
+        write_results("shafts_interactive", rows, quick=args.quick, update=partial)
+        saved.append(True)
 
-    def verdict(ok):
-        return "met" if ok else "missed"
-
-    results = []
-    spot_target = "textured spot + sphere + floor 720x480 <= 40 ms at <= 2 %"
-    stage_target = "five-spot stage 720x480 <= 0.17 s at <= 2 %"
-    for name, target, limit in (("spot", spot_target, 0.04), ("stage", stage_target, 0.17)):
-        if name not in scenes:
-            continue
-        best = summary[(name, "equiangular")]
-        if best is None:  # a row all the same: "no setting reached 2 %" is a result too
-            lowest = min(r["err"] for r in rows if r["scene"] == name and r["method"] == "equiangular")
-            results.append(dict(area="shafts", target=target, status="missed",
-                                measured=f"no equiangular setting reached 2 % (lowest {100 * lowest:.2f} %)"))
-            continue
-        results.append(dict(area="shafts", target=target,
-                            measured=f"{best['median_s']:.3f} s wall, {best['cpu_s']:.3f} s CPU "
-                                     f"({best['setting']}, {100 * best['err']:.2f} %)",
-                            status=verdict(best["median_s"] <= limit)))
-    if "stage" in scenes:
-        results.append(stage_ratio_row(summary[("stage", "equiangular")], summary[("stage", "raymarch")]))
-    if grad:
-        results.append(dict(area="shafts", target="gradient <= 4x forward",
-                            measured=f"{grad['ratio_wall']:.2f}x wall, {grad['ratio_cpu']:.2f}x CPU (spot scene)",
-                            status=verdict(grad["ratio_wall"] <= 4)))
-    write_results("shafts_interactive", results, quick=args.quick)
+    with tempfile.TemporaryDirectory() as tmp:
+        directory = Path(tmp)
+        if "frames" in sections:
+            rows, samples = frames(args, w, h, directory, repeats)
+            save(rows)
+        if "maps" in sections:
+            save(maps(args, w, h, directory, repeats, samples))
+        if "gradient" in sections and not args.quick:  # two compiles a parameter: tests/ check the gradients
+            gradient(args, w, h, directory, repeats, save)
+    for r in results:
+        print(f"{r['status']:>8s}  {r['target']}: {r['measured']}")
     return 0
 
 

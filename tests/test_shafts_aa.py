@@ -55,7 +55,8 @@ def test_subpixel_grid_is_the_regular_k_by_k_grid():
 def test_every_method_supersamples_and_stays_differentiable(method):
     """spp = 4 is the box mean of the 2x-resolution render (deterministic: twice the same), and
     the gradient through it w.r.t. the fog density is finite and nonzero."""
-    options = {"equiangular": {"samples": 8, "shadow_map": 32, "prune": False},
+    options = {"adaptive": {"samples": 8, "shadow_map": 32},
+               "equiangular": {"samples": 8, "shadow_map": 32, "prune": False},
                "planes": {"planes": 6, "subplanes": 2, "prune": False},
                "raymarch": {"samples": 16}}[method]
     scene = _scene(width=8, height=6, shadow_map=32)
@@ -146,7 +147,7 @@ def _cli_scene(tmp_path: Path, **render_block) -> Path:
 
 
 def test_cli_spp_from_flag_and_scene_file(tmp_path):
-    """`--spp 4` and `render.spp: 4` give the same image; the default method is equiangular."""
+    """`--spp 4` and `render.spp: 4` give the same image, the default method's (adaptive)."""
     flag, block = tmp_path / "flag.exr", tmp_path / "block.exr"
     assert main(["shafts", str(_cli_scene(tmp_path)), "--out", str(flag), "--spp", "4", "--samples", "8"]) == 0
     assert main(["shafts", str(_cli_scene(tmp_path, spp=4)), "--out", str(block), "--samples", "8"]) == 0

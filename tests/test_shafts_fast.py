@@ -20,7 +20,7 @@ _QUAD_TOL = 1e-3  # 64 angle steps vs 400 000-point float64 midpoint rule, no sh
 _FD_RTOL = 2e-4  # float64 central differences, h = 1e-5 relative, smooth configuration
 _EXACT = 1e-9  # the same computation, float64
 
-_eq = jax.jit(render_equiangular, static_argnames=("samples", "shadow_map", "surface_shadows", "chunk", "prune", "bake",
+_eq = jax.jit(render_equiangular, static_argnames=("samples", "shadow_map", "surface_shadows", "chunk", "prune",
                                                    "return_parts"))
 _rm = jax.jit(render_raymarch, static_argnames=("samples", "batch_size", "return_parts"))
 
@@ -79,7 +79,7 @@ def test_pruning_changes_nothing():
 
 def test_render_entry_point_dispatches_and_rejects_unknown_method():
     scene = _scene(width=8, height=6, shadow_map=32)
-    got = jax.jit(lambda s: render(s, samples=8, shadow_map=32, prune=False))(scene)
+    got = jax.jit(lambda s: render(s, method="equiangular", samples=8, shadow_map=32, prune=False))(scene)
     np.testing.assert_allclose(np.asarray(got), np.asarray(_eq(scene, samples=8, shadow_map=32, prune=False)),
                                atol=_EXACT)
     with pytest.raises(ValueError, match="unknown shafts method"):

@@ -369,7 +369,7 @@ def test_target_error_chooses_counts_that_reach_it():
     lmap = np.random.default_rng(0).uniform(0.2, 1.0, (6, 6, 3))
     scene = _scene(_grid(), light_map=lmap)
     _, ref = _RM(scene)
-    _, (_, fog) = render(scene, target_error=_TARGET, shadow_map=64, prune=False, return_parts=True)
+    _, (_, fog) = render(scene, target_error=_TARGET, shadow_map=64, return_parts=True)  # the default method
     assert _rel(fog[0], ref) <= _TARGET_SLACK * _TARGET, _rel(fog[0], ref)
     choice = choose_counts(scene, _TARGET, shadow_map=64)
     assert choice.reached and 2 <= choice.options["samples"] < 64
@@ -394,6 +394,6 @@ def test_cli_error_option(tmp_path, capsys):
         assert len(err) == 1 and "--error" in err[0], err
     assert main(["shafts", str(tmp_path / "s.json"), "--out", str(tmp_path / "x.exr"), "--error", "0.05"]) == 0
     line = capsys.readouterr().out.strip()
-    assert line.startswith("error target 5 %: equiangular with samples "), line
+    assert line.startswith("error target 5 %: adaptive with samples "), line
     image = read_image(tmp_path / "x.exr")
     assert image.shape[:2] == (6, 8) and np.all(np.isfinite(image)) and image.max() > 0

@@ -6,7 +6,7 @@ Three independent evaluations of the same scene dict:
 - a float64 numpy brute force written here from design.md (midpoint quadrature along each view
   ray, analytic shadow rays, supersampled pixels) -- checks that the Mitsuba conversion itself
   means what design.md says (fog, phase orientation, light-map uv, falloff, surfaces);
-- our renderer: the ray march and the sample-plane method in float mode.
+- our renderer: the ray march, the sample-plane method in float mode and the default (adaptive) method.
 
 Noise model. Mitsuba's image is the mean of `_REPEATS` renders with different seeds; the variance
 of each pixel mean is estimated from the spread of the repeats (sample variance / repeats), and
@@ -113,8 +113,14 @@ def _render_planes(scene):
     return render_planes(scene, planes=30, subplanes=6, quantize_bits=0)
 
 
-_RAYMARCH = eqx.filter_jit(_render_raymarch)
-_PLANES = eqx.filter_jit(_render_planes)
+def _render_adaptive(scene):
+    from jaxrender.shafts import render_adaptive
+
+    return render_adaptive(scene)
+
+
+_RENDER = {"raymarch": eqx.filter_jit(_render_raymarch), "planes": eqx.filter_jit(_render_planes),
+           "adaptive": eqx.filter_jit(_render_adaptive)}
 
 
 @functools.cache
@@ -123,7 +129,7 @@ def _ours(method: str, fog: bool, base_dir: Path) -> np.ndarray:
     from jaxrender.app.scenes import shafts_scene_from_dict
 
     scene = shafts_scene_from_dict(_scene_dict(fog=fog), base_dir=base_dir).with_size(_W * _SS, _H * _SS)
-    img = np.asarray((_RAYMARCH if method == "raymarch" else _PLANES)(scene), dtype=np.float64)
+    img = np.asarray(_RENDER[method](scene), dtype=np.float64)
     assert np.all(np.isfinite(img))
     return img.reshape(_H, _SS, _W, _SS, 3).mean(axis=(1, 3))
 
@@ -276,10 +282,11 @@ def test_mitsuba_conversion_matches_numpy_brute_force(mitsuba_fog):
 
 
 # -- our renderer against Mitsuba -----------------------------------------------------------------
-@pytest.mark.parametrize("method", ["raymarch", "planes"])
+@pytest.mark.parametrize("method", ["raymarch", "planes", "adaptive"])
 def test_fog_with_light_map_and_shadow_shaft_matches_mitsuba(method, mitsuba_fog, scene_dir):
     """Textured spot light, sphere casting a shadow shaft through the fog, floor: our ray march
-    (180 samples) and our sample-plane method (30 x 6, float mode) against Mitsuba 3."""
+    (180 samples), our sample-plane method (30 x 6, float mode) and the default method (adaptive,
+    its default settings) against Mitsuba 3."""
     mean, var = mitsuba_fog
     ours = _ours(method, True, scene_dir)
     _check_blocks(ours, mean, var)

@@ -10,6 +10,10 @@ Radiant intensity toward a point P at distance s from the light, in the light's 
 - uv = 0.5 + 0.5 * (w.x, w.y) / (w.z * tan(cutoff)); u along the map's columns, v along its rows
   (v = 0 at the top of row 0); bilinear lookup clamped at the border (`jaxrender.textures.bilinear`).
 - No light map = a 1x1 white map.
+- `mips`: the light map's mip pyramid (`jaxrender.textures.pack_mips`), built once when the light
+  is made, for lookups at the level a footprint needs (the fast shaft methods' fog samples);
+  None for a 1 x 1 map. Replace a light map with `with_light_map` (it rebuilds the pyramid), not
+  with `eqx.tree_at` on `light_map` alone.
 
 Gradient-safe: theta uses atan2(safe_norm(w.xy), w.z), finite (zero) gradient on the cone axis; the
 division by w.z is guarded behind the light. A batch of lights is either a Python list of
@@ -28,7 +32,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..camera import look_at_frame
 from ..maths import atan_nonneg, normalize, safe_norm
-from ..textures import bilinear, quantize
+from ..textures import PackedMips, bilinear, pack_mips, quantize
 
 __all__ = ["SpotLight", "stack_spotlights", "unstack_spotlights", "cone_angle"]
 
@@ -58,7 +62,8 @@ class SpotLight(eqx.Module):
     """One spot light (or a stacked batch: every leaf with a leading axis).
 
     Fields: `position`, `target`, `up` (3,), `cutoff_deg`, `beam_width_deg` (scalars, degrees),
-    `intensity` (3,) linear RGB radiant intensity (W/sr per channel), `light_map` (H, W, 3) linear RGB.
+    `intensity` (3,) linear RGB radiant intensity (W/sr per channel), `light_map` (H, W, 3) linear RGB;
+    `mips` is derived from `light_map` (module docstring).
     """
 
     position: Float[Array, "3"]
@@ -68,6 +73,7 @@ class SpotLight(eqx.Module):
     beam_width_deg: Float[Array, ""]
     intensity: Float[Array, "3"]
     light_map: Float[Array, "H W 3"]
+    mips: PackedMips | None
 
     def __init__(self, position, target, up=(0.0, 0.0, 1.0), cutoff_deg=20.0, beam_width_deg=None,
                  intensity=(1.0, 1.0, 1.0), light_map=None):
@@ -81,6 +87,13 @@ class SpotLight(eqx.Module):
         self.intensity = (jnp.broadcast_to(intensity, self.position.shape[:-1] + (3,)) if intensity.ndim == 0
                           else intensity)
         self.light_map = jnp.ones((1, 1, 3)) if light_map is None else jnp.asarray(light_map, dtype=float)
+        textured = self.light_map.shape[-3] * self.light_map.shape[-2] > 1 and self.light_map.ndim == 3
+        self.mips = pack_mips(self.light_map) if textured else None
+
+    def with_light_map(self, light_map) -> "SpotLight":
+        """The same light projecting another light map (its mip pyramid rebuilt)."""
+        return SpotLight(self.position, self.target, self.up, self.cutoff_deg, self.beam_width_deg, self.intensity,
+                         light_map)
 
     # -- frame ---------------------------------------------------------------------------------
     def frame(self) -> tuple[Float[Array, "3"], Float[Array, "3"], Float[Array, "3"]]:
@@ -130,30 +143,46 @@ class SpotLight(eqx.Module):
         uv = 0.5 + local[..., :2] * scale[..., None]
         return jnp.where(front[..., None], uv, 0.5)
 
-    def map_value(self, uv: Float[ArrayLike, "*B 2"], *, quantize_bits: int = 0) -> Float[Array, "*B 3"]:
+    def map_value(self, uv: Float[ArrayLike, "*B 2"], *, quantize_bits: int = 0,
+                  footprint: Float[ArrayLike, "*B"] | None = None) -> Float[Array, "*B 3"]:
         """Bilinear, clamped light-map lookup; with `quantize_bits` the map is first rounded to
         2^B - 1 levels of its maximum (8-bit textures). A 1 x 1 map (no light map) is its texel
-        everywhere, read without gathers (the five-spot stage's surface pass: ~6 % less CPU)."""
+        everywhere, read without gathers (the five-spot stage's surface pass: ~6 % less CPU).
+        `footprint` (radians seen from the light): instead, the nearest texel of the mip level
+        whose texels are no larger than it (`mips`; one gather, whatever the map's size). No
+        gradient through uv."""
         texture = self.quantized_map(quantize_bits)
         uv = jnp.asarray(uv)
         if texture.shape[:2] == (1, 1):
             return jnp.broadcast_to(texture[0, 0], uv.shape[:-1] + texture.shape[2:])
-        return bilinear(texture, uv, wrap="clamp")
+        if footprint is None:
+            return bilinear(texture, uv, wrap="clamp")
+        if quantize_bits:
+            raise ValueError("light-map lookups by footprint read the unquantized mip pyramid")
+        mips = self.mips
+        level = mips.level_for(jnp.asarray(footprint) * (mips.side / (2.0 * jnp.tan(self.cutoff))))
+        uv = jax.lax.stop_gradient(uv)
+        texel = mips.index(uv[..., 0], uv[..., 1], jax.lax.stop_gradient(level))
+        return jnp.broadcast_to(mips.fetch(texel), texel.shape + self.light_map.shape[-1:])
 
     def quantized_map(self, quantize_bits: int = 0) -> Float[Array, "H W 3"]:
         if quantize_bits == 0:
             return self.light_map
         return quantize(self.light_map, quantize_bits, scale=jnp.max(self.light_map))
 
-    def radiant_intensity(self, points: Float[ArrayLike, "*B 3"], *, quantize_bits: int = 0
+    def radiant_intensity(self, points: Float[ArrayLike, "*B 3"], *, quantize_bits: int = 0,
+                          footprint: Float[ArrayLike, "*B"] | None = None
                           ) -> tuple[Float[Array, "*B 3"], Float[Array, "*B"], Float[Array, "*B 3"]]:
         """(I, s, w): RGB radiant intensity toward each point, its distance s from the light, and
-        the unit propagation direction w (world frame) from the light to the point."""
+        the unit propagation direction w (world frame) from the light to the point. `footprint`:
+        the size (a length across the direction from the light, at the point) the light-map
+        lookup covers (`map_value`); None: bilinear."""
         points = jnp.asarray(points)
         local = self.to_local(points)
         s = safe_norm(local)
         fall = self.falloff(local)
-        value = self.map_value(self.uv(local), quantize_bits=quantize_bits)
+        angle = None if footprint is None else jnp.asarray(footprint) / jnp.maximum(s, 1e-9)
+        value = self.map_value(self.uv(local), quantize_bits=quantize_bits, footprint=angle)
         rel = points - jnp.broadcast_to(self.position, points.shape)
         return value * (fall[..., None] * jnp.broadcast_to(self.intensity, value.shape)), s, normalize(rel)
 

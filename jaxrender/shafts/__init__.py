@@ -1,21 +1,22 @@
 """Light shafts in fog (paper 000): the scattering model of eqs. 1-4, a fast equiangular
-single-scattering method (the default), the sample-plane method with sub-sample planes and 8-bit
-hardware emulation (eqs. 5-9), and a ray-marched reference; `render` runs any of them with
-`samples_per_pixel` (k x k regular sub-pixel grid, box filter). Fog may vary in space: a
+single-scattering method, evaluated where the image needs it by the default method (`adaptive`:
+a coarse grid of rays, refined at edges and silhouettes) or at every pixel, the sample-plane
+method with sub-sample planes and 8-bit hardware emulation (eqs. 5-9), and a ray-marched reference;
+`render` runs any of them with `samples_per_pixel` (k x k regular sub-pixel grid, box filter). Fog may vary in space: a
 `DensityGrid` in `Medium(density=...)` (issue 24; every method, differentiable in the grid).
 
     scene = jaxrender.app.scenes.load_shafts_scene("scene.json")
-    image = jaxrender.shafts.render(scene, samples_per_pixel=4)                 # equiangular, 2 x 2 AA
+    image = jaxrender.shafts.render(scene, samples_per_pixel=4)                 # adaptive, 2 x 2 AA
     image = jaxrender.shafts.render_planes(scene, planes=30, subplanes=6)     # (H, W, 3)
     ref = jaxrender.shafts.render_raymarch(scene, samples=180)
 """
 
+from ._adaptive import render_adaptive as render_adaptive
 from ._density import DensityGrid as DensityGrid
 from ._density import DepthVolume as DepthVolume
 from ._density import box_interval as box_interval
 from ._density import depth_volume as depth_volume
 from ._density import segment_optical_depth as segment_optical_depth
-from ._equiangular import bake_light_map as bake_light_map
 from ._equiangular import equiangular_ladder as equiangular_ladder
 from ._equiangular import equiangular_scattering as equiangular_scattering
 from ._equiangular import render_equiangular as render_equiangular

@@ -36,7 +36,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..maths import safe_norm
 
-__all__ = ["DensityGrid", "DepthVolume", "depth_volume", "segment_optical_depth", "box_interval", "blend"]
+__all__ = ["DensityGrid", "DepthVolume", "depth_volume", "segment_optical_depth", "box_interval", "blend",
+           "trilinear"]
 
 _GAUSS = 0.5 / np.sqrt(3.0)  # two-point Gauss-Legendre nodes at 1/2 -+ this on [0, 1]
 
@@ -56,8 +57,9 @@ def _blend_fwd(flat, index, weight):
 
 def _blend_bwd(res, g):
     flat, index, weight = res
-    idx = jnp.stack(index, axis=-1)
-    d_flat = jnp.zeros_like(flat).at[idx.reshape(-1)].add((jnp.stack(weight, axis=-1) * g[..., None]).reshape(-1))
+    idx = jnp.concatenate([i.reshape(-1) for i in index])
+    upd = jnp.concatenate([(w * g).reshape(-1) for w in weight])
+    d_flat = jnp.zeros_like(flat).at[idx].add(upd)
     return d_flat, None, [g * flat[i] for i in index]
 
 
@@ -73,6 +75,79 @@ def _axis_weights(c: Array, lo: Array, hi: Array, n: int):
     f = g - i0.astype(g.dtype)
     i1 = jnp.minimum(i0 + 1, n - 1)
     return i0, i1, f, (c >= lo) & (c <= hi)
+
+
+def _axis_parts(c: Array, lo: Array, hi: Array, n: int):
+    """`_axis_weights` plus dg/dc where the clamp is not active (g's slope, 0 where clamped)."""
+    scale = n / (hi - lo)
+    g_raw = (c - lo) * scale - 0.5
+    i0, i1, f, inside = _axis_weights(c, lo, hi, n)
+    free = (g_raw > 0.0) & (g_raw < n - 1.0)
+    return i0, i1, f, inside, jnp.where(free, scale, 0.0)
+
+
+def _corner_terms(values, lo, hi, x, y, z):
+    nz, ny, nx = values.shape
+    ax = _axis_parts(x, lo[0], hi[0], nx)
+    ay = _axis_parts(y, lo[1], hi[1], ny)
+    az = _axis_parts(z, lo[2], hi[2], nz)
+    return ax, ay, az, ax[3] & ay[3] & az[3]
+
+
+@jax.custom_vjp
+def trilinear(values: Array, lo: Array, hi: Array, x: Array, y: Array, z: Array) -> Array:
+    """d at points (x, y, z) of equal shape: trilinear between voxel centres, clamped to the
+    outermost ones, 0 outside the box (the module docstring's grid). Its reverse pass is written
+    out from the positions alone: the eight corners' indices and weights are a few flops from
+    them, where autodiff's residuals (eight index and eight weight arrays a lookup, per lookup of
+    a frame) made XLA's CPU backend recompute each corner's whole chain from the rays."""
+    nz, ny, nx = values.shape
+    (x0, x1, fx, _, _), (y0, y1, fy, _, _), (z0, z1, fz, _, _), inside = _corner_terms(values, lo, hi, x, y, z)
+    flat = values.reshape((-1,))
+    out = 0.0
+    for zi, wz in ((z0, 1.0 - fz), (z1, fz)):
+        for yi, wy in ((y0, 1.0 - fy), (y1, fy)):
+            row = (zi * ny + yi) * nx
+            out = out + wz * wy * ((1.0 - fx) * flat[row + x0] + fx * flat[row + x1])
+    return jnp.where(inside, out, 0.0)
+
+
+def _trilinear_fwd(values, lo, hi, x, y, z):
+    return trilinear(values, lo, hi, x, y, z), (values, lo, hi, x, y, z)
+
+
+def _trilinear_bwd(res, g):
+    values, lo, hi, x, y, z = res
+    nz, ny, nx = values.shape
+    (x0, x1, fx, _, sx), (y0, y1, fy, _, sy), (z0, z1, fz, _, sz), inside = _corner_terms(values, lo, hi, x, y, z)
+    g = jnp.where(inside, g, 0.0)
+    flat = values.reshape((-1,))
+    index, weight = [], []
+    d_fx = d_fy = d_fz = 0.0
+    for zi, wz, dz in ((z0, 1.0 - fz, -1.0), (z1, fz, 1.0)):
+        for yi, wy, dy in ((y0, 1.0 - fy, -1.0), (y1, fy, 1.0)):
+            row = (zi * ny + yi) * nx
+            v0, v1 = flat[row + x0], flat[row + x1]
+            index += [row + x0, row + x1]
+            weight += [wz * wy * (1.0 - fx), wz * wy * fx]
+            along_x = (1.0 - fx) * v0 + fx * v1
+            d_fx = d_fx + wz * wy * (v1 - v0)
+            d_fy = d_fy + dy * wz * along_x
+            d_fz = d_fz + dz * wy * along_x
+    d_values = jnp.zeros_like(flat).at[jnp.concatenate([i.reshape(-1) for i in index])].add(
+        jnp.concatenate([(w * g).reshape(-1) for w in weight])).reshape(values.shape)
+    d_gx, d_gy, d_gz = g * d_fx * sx, g * d_fy * sy, g * d_fz * sz  # d out / d coordinate
+    # g = (c - lo) n / (hi - lo) - 1/2: dg/dlo = (c - hi) n / (hi - lo)^2 = (c - hi) / (hi - lo) dg/dc, dg/dhi
+    # = -(c - lo) / (hi - lo) dg/dc
+    d_lo, d_hi = [], []
+    for a, (c, d_c) in enumerate(((x, d_gx), (y, d_gy), (z, d_gz))):
+        span = hi[a] - lo[a]
+        d_lo.append(jnp.sum(d_c * (c - hi[a])) / span)
+        d_hi.append(-jnp.sum(d_c * (c - lo[a])) / span)
+    return d_values, jnp.stack(d_lo), jnp.stack(d_hi), d_gx, d_gy, d_gz
+
+
+trilinear.defvjp(_trilinear_fwd, _trilinear_bwd)
 
 
 class DensityGrid(eqx.Module):
@@ -96,18 +171,8 @@ class DensityGrid(eqx.Module):
 
     def at_xyz(self, x: Array, y: Array, z: Array) -> Array:
         """d at points given by their coordinate arrays (component form: no minor axis of 3)."""
-        nz, ny, nx = self.values.shape
-        lo, hi = self.box_min, self.box_max
-        x0, x1, fx, ix = _axis_weights(x, lo[0], hi[0], nx)
-        y0, y1, fy, iy = _axis_weights(y, lo[1], hi[1], ny)
-        z0, z1, fz, iz = _axis_weights(z, lo[2], hi[2], nz)
-        index, weight = [], []
-        for zi, wz in ((z0, 1.0 - fz), (z1, fz)):
-            for yi, wy in ((y0, 1.0 - fy), (y1, fy)):
-                row = (zi * ny + yi) * nx
-                index += [row + x0, row + x1]
-                weight += [wz * wy * (1.0 - fx), wz * wy * fx]
-        return jnp.where(ix & iy & iz, blend(self.values.reshape((-1,)), index, weight), 0.0)
+        x, y, z = jnp.broadcast_arrays(x, y, z)
+        return trilinear(self.values, self.box_min, self.box_max, x, y, z)
 
     def at(self, points: Float[ArrayLike, "*B 3"]) -> Float[Array, "*B"]:
         """d at points of shape `(*B, 3)`."""

@@ -1,4 +1,5 @@
-"""Fast single scattering: equiangular quadrature seen from each light (the default shafts method).
+"""Fast single scattering: equiangular quadrature seen from each light (the default method,
+`render_adaptive`, evaluates it where the image needs it; `render_equiangular` at every pixel).
 
 Along a view ray E + t d, let L be the light, t_p the parameter of the ray's closest approach to L
 and h that distance. Parametrize the ray by the angle phi it subtends at the light:
@@ -19,10 +20,11 @@ apex, where a ray march needs many uniform samples in t, phi steps are automatic
 Per sample: the local light direction w = cos(phi) m + sin(phi) d (m the unit vector from L to the
 closest point, both in the light's frame; cos/sin by a polynomial, no libm call), the falloff
 (polynomial arctan), ONE nearest-texel fetch of the shadow-map depth and, for a textured light,
-ONE nearest-texel fetch of the light map pre-filtered onto a grid `bake` times finer than the map
-(bilinear at the finer texel centres: one bilinear evaluation per fine texel per frame, not four
-fetches per sample). Cost per pixel and light: `samples` x (about 60 flops, one exp, one or two
-gathers); only the rays that enter a light's cone are evaluated for it (`active_rays_map`).
+`map_taps` nearest-texel fetches of the light map's mip pyramid (`light.mips`, built once when the
+light is made) at the level of the pixel's footprint seen from the light (so a 1024^2 map costs a
+frame what a 64^2 one does: the gathers, not the map, cost). Cost per pixel and light: `samples` x
+(about 60 flops, one exp, 1 + map_taps gathers); only the rays that enter a light's cone are
+evaluated for it (`active_rays_map`).
 
 Fog with a density grid (issue 24): each sample also needs d(P) (a trilinear lookup of the
 grid), the optical depth toward the light (the light's `DepthVolume`, indexed by the same uv as
@@ -34,9 +36,10 @@ fog's; a grid of ones reproduces it to rounding. See docs/fog.md.
 
 Surfaces: two-sided Lambert with extinction (`surface_term`), shadowed by the same shadow maps
 (`shadow_map_visibility`, the plane method's slope-scaled lookup) or, on request, by exact shadow
-rays. Gradients flow to rho, kappa, K, intensity, the light's pose (geometry, falloff,
-interval ends) and the light-map values; not through the shadow map (no gradient by design) nor
-through the light map's uv (nearest fetch of the baked map).
+rays. Gradients flow to rho, kappa, K, intensity and the light's pose (geometry, falloff,
+interval ends); not through the shadow map (no gradient by design), the light map's uv (nearest
+fetches); to the light map's texels only through a light made inside the differentiated function
+(its pyramid is built when the light is made: `SpotLight.with_light_map`).
 """
 
 from __future__ import annotations
@@ -46,25 +49,28 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from ..fusion import materialize
 from ..geometry import cast_rays, hit_point
 from ..lights import SpotLight
-from ..maths import atan_nonneg, outer
-from ..textures import bilinear
+from ..maths import atan_nonneg, outer, sum_last
 from ._density import DepthVolume
 from ._fog import FogVolumes, RayFog, fog_volumes
 from ._model import FAR, cone_intervals, light_reach, surface_term
 from ._raymarch import surface_visibility
 from ._scene import ShaftsScene, shadow_maps
 
-__all__ = ["render_equiangular", "equiangular_scattering", "equiangular_ladder", "bake_light_map", "active_rays_map"]
+__all__ = ["render_equiangular", "equiangular_scattering", "equiangular_ladder", "active_rays_map",
+           "map_active_runs"]
 
 
 _H_MIN = 1e-6  # floor of the ray-to-light distance h (a ray through the light itself)
-_BAKE = 8  # baked light-map texels per light-map texel along each axis
-_BAKE_MAX = 1024  # cap on the baked map's side
+# light-map texels per pixel footprint (seen from the light) that the nearest fetch keeps: its
+# half-texel displacement then stays within 1/16 of a pixel. Each level coarser doubles the light
+# map's part of the error against point-sampled rays (textured spot, 360 x 240, 128 samples x 4
+# taps: 1.7 % at one texel per footprint, 0.9 % at 2, 0.6 % at 4, 0.3 % at 8)
+MAP_DETAIL = 8.0
 
 
 def _cos_sin(x: Array) -> tuple[Array, Array]:
@@ -80,19 +86,6 @@ def _cos_sin(x: Array) -> tuple[Array, Array]:
 def _signed_atan(y: Array, h: Array) -> Array:
     """atan(y / h) for h > 0 (polynomial arctan with arctan's derivative)."""
     return jnp.sign(y) * atan_nonneg(jnp.abs(y) / h)
-
-
-def bake_light_map(light: SpotLight, *, bake: int = _BAKE, max_size: int = _BAKE_MAX) -> Float[Array, "N N 3"] | None:
-    """The light map sampled bilinearly (clamped) at the texel centres of a grid `bake` times
-    finer (at most `max_size` texels a side); None for a uniform (1 x 1) map. A nearest fetch of it
-    differs from the bilinear lookup by at most the map's slope over half a fine texel."""
-    lmap = light.light_map
-    if lmap.shape[0] * lmap.shape[1] == 1:
-        return None
-    n = int(min(bake * max(lmap.shape[0], lmap.shape[1]), max_size))
-    c = (jnp.arange(n, dtype=lmap.dtype) + 0.5) / n
-    v, u = jnp.meshgrid(c, c, indexing="ij")
-    return bilinear(lmap, jnp.stack([u, v], axis=-1), wrap="clamp")
 
 
 def _view_depth_along(view: DepthVolume, eye: Array, dirs: Array, t: Array) -> Array:
@@ -119,16 +112,20 @@ def _anchored_view_depth(dens: Array, left: Array, right: Array, t_s: Array, e0:
     return tau0[..., None] + before + dens * (t_s - left) + frac * jnp.where(ok, tau1 - tau0 - total, 0.0)[..., None]
 
 
-def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: Float[Array, "N N 3"] | None,
-                           eye: Float[Array, "3"], dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"],
-                           t1: Float[Array, "*B"], rho, kappa, K, bias, *, samples: int,
-                           fog: RayFog | None = None, count=None) -> Float[Array, "*B 3"]:
+def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], eye: Float[Array, "3"],
+                           dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"], t1: Float[Array, "*B"], rho, kappa, K,
+                           bias, *, samples: int, pixel_angle, map_taps: int = 1, fog: RayFog | None = None,
+                           count=None) -> Float[Array, "*B 3"]:
     """In-scattered radiance of one spot light along view rays eye + t dirs, t in [t0, t1]
     (eq. 2, `samples` midpoints equally spaced in the angle seen from the light; see the module
-    docstring). `depth`: the light's shadow map (distances, nearest texel + `bias`); `baked`: the
-    light map from `bake_light_map` (None: uniform); `fog`: the density grid's lookups (None:
-    uniform fog). `count` (a traced integer <= samples): use only the first `count` of `samples`
-    slots, spaced for `count` (one compiled function for many counts, as `choose_counts` needs)."""
+    docstring). `depth`: the light's shadow map (distances, nearest texel + `bias`); the light
+    map is read from its pyramid (`light.mips`) at the level of the pixel's footprint seen from
+    the light (`pixel_angle`: the angle between neighbouring pixels' rays, radians), averaged over
+    `map_taps` points spread evenly over the sample's cell of angle (the light map's sharp edges
+    set the error of a point-sampled midpoint rule; see the module docstring); `fog`: the
+    density grid's lookups (None: uniform fog). `count` (a traced integer <= samples): use only
+    the first `count` of `samples` slots, spaced for `count` (one compiled function for many
+    counts, as `choose_counts` needs)."""
     x_ax, y_ax, z_ax = light.frame()
     rel = eye - light.position
     le = jnp.stack([jnp.dot(rel, x_ax), jnp.dot(rel, y_ax), jnp.dot(rel, z_ax)])
@@ -204,77 +201,161 @@ def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], baked: 
         tau_v = _anchored_view_depth(dens, left, right, t_s, e0, e1, ends[0], ends[1])
         weight = jnp.where(lit, fall * phase * dens * jnp.exp(-rho * kappa * (tau_l + tau_v)), 0.0)
     scale = rho * step / h
-    if baked is None:
-        return outer(jnp.sum(weight, axis=-1) * scale, light.intensity)
-    n = baked.shape[0]
-    bcol = jnp.clip(jnp.floor(u * n).astype(jnp.int32), 0, n - 1)
-    brow = jnp.clip(jnp.floor(v * n).astype(jnp.int32), 0, n - 1)
-    texel = brow * n + bcol
-    # one scalar gather per channel: gathering (S, 3) colours and summing over the middle S axis
-    # cost XLA on CPU ~3x as much (a copy after the gather, a strided reduction)
-    summed = jnp.stack([jnp.sum(baked[..., c].reshape((-1,))[texel] * weight, axis=-1) for c in range(3)], axis=-1)
+    mips = light.mips
+    if mips is None:
+        return outer(sum_last(weight) * scale, light.intensity)
+    # one level per ray: the pixel's footprint seen from the light at the middle of the interval
+    # (the angle pixel_angle at distance t from the eye spans pixel_angle t / s from the light), in
+    # level-0 texels, over MAP_DETAIL; a large map is read at the level the pixel needs, so its
+    # size does not matter beyond that
+    t_mid = 0.5 * (t0 + t1)
+    s_mid = jnp.sqrt(h * h + (t_mid - t_p) ** 2)
+    footprint = pixel_angle * t_mid / jnp.maximum(s_mid, _H_MIN) * (mips.side / (2.0 * jnp.tan(cut)))
+    level = jax.lax.stop_gradient(mips.level_for(footprint / MAP_DETAIL))
+    base = mips.offset(level)[..., None]
+    level = level[..., None]
+    if map_taps == 1:
+        mapv = mips.fetch(mips.index(u, v, level, base))
+    else:  # the map averaged over the sample's cell of angle: taps at phi + step ((j + 1/2) / taps - 1/2)
+        mapv = 0.0
+        tan_c = jnp.tan(cut)
+        for j in range(map_taps):
+            cd, sd = _cos_sin(step * ((j + 0.5) / map_taps - 0.5))
+            cd, sd = cd[..., None], sd[..., None]
+            cj, sj = c * cd - s * sd, s * cd + c * sd  # cos, sin of phi + delta
+            wxj, wyj, wzj = (cj * m[i][..., None] + sj * ld[i][..., None] for i in range(3))
+            invj = jax.lax.stop_gradient(0.5 / (jnp.where(wzj > 1e-6, wzj, 1.0) * tan_c))
+            uj, vj = jax.lax.stop_gradient(0.5 + wxj * invj), jax.lax.stop_gradient(0.5 + wyj * invj)
+            mapv = mapv + mips.fetch(mips.index(uj, vj, level, base))
+        mapv = mapv * (1.0 / map_taps)
+    if mips.channels == 1:  # a gray map: one scalar gather per tap
+        return outer(sum_last(mapv[..., 0] * weight) * scale, light.intensity)
+    summed = jnp.stack([sum_last(mapv[..., k] * weight) for k in range(mapv.shape[-1])], axis=-1)
     return summed * outer(scale, light.intensity)
+
+
+def map_active_runs(fn, active: Bool[Array, " R"], args, *, chunk_runs: int, into: Array) -> Array:
+    """`into` plus fn(...) on the active runs: every leaf of `args` and `into` has a leading axis
+    of R runs; the active runs are compacted to the front (`jnp.nonzero` with a static size) and
+    handed to `fn` `chunk_runs` at a time by a `lax.scan` that adds each chunk's result into
+    `into` at the chunk's runs; a chunk past the active count is skipped (`lax.cond`), so the cost
+    follows the active runs. fn(valid (chunk,), *leaves (chunk, ...)) -> (chunk, ...) like `into`'s
+    rows; runs with `valid` False (past the count, inside the last chunk) must give zeros.
+
+    Reverse mode is written out (`_chunks`): a second scan over the same chunks recomputes each one
+    and pulls its cotangent back (`jax.vjp`), adding into the cotangents of `args` and of the
+    values `fn` closes over. Differentiating the scan itself would store, per chunk, a copy of
+    everything `fn` reads (JAX forwards the inputs of a skippable chunk through the `cond` as
+    per-iteration residuals): 43 copies of the frame's rays and maps per light at 720 x 480."""
+    n_runs = active.shape[0]
+    per_chunk = int(max(1, min(chunk_runs, n_runs)))
+    n_chunks = -(-n_runs // per_chunk)
+    active = jax.lax.stop_gradient(active)
+    count = jnp.sum(active)
+    runs = jnp.nonzero(active, size=n_chunks * per_chunk, fill_value=0)[0].reshape((n_chunks, per_chunk))
+    first = jnp.arange(n_chunks) * per_chunk
+    example = jax.tree_util.tree_map(lambda a: a[:per_chunk], args)
+    converted, consts = jax.closure_convert(fn, jnp.ones((per_chunk,), bool), *example)
+    return _chunks(converted, n_runs, (count, runs, first), args, tuple(consts), into)
+
+
+def _chunk_valid(start, count, per_chunk):
+    return start + jnp.arange(per_chunk) < count  # runs past the active count: empty
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
+def _chunks(fn, n_runs, plan, args, consts, into):
+    count, runs, first = plan
+    per_chunk = runs.shape[1]
+
+    def step(acc, xs):
+        start, ids = xs
+
+        def add(acc):
+            valid = _chunk_valid(start, count, per_chunk)
+            out = fn(valid, *jax.tree_util.tree_map(lambda a: a[ids], args), *consts)
+            return acc.at[jnp.where(valid, ids, n_runs)].add(out, mode="drop")  # index n_runs: dropped
+
+        return jax.lax.cond(start < count, add, lambda acc: acc, acc), None
+
+    return jax.lax.scan(step, into, (first, runs))[0]
+
+
+def _chunks_fwd(fn, n_runs, plan, args, consts, into):
+    return _chunks(fn, n_runs, plan, args, consts, into), (plan, args, consts)
+
+
+def _chunks_bwd(fn, n_runs, res, g):
+    plan, args, consts = res
+    count, runs, first = plan
+    per_chunk = runs.shape[1]
+
+    def step(carry, xs):
+        start, ids = xs
+
+        def pull(carry):
+            d_args, d_consts = carry
+            valid = _chunk_valid(start, count, per_chunk)
+            target = jnp.where(valid, ids, n_runs)
+            sub = jax.tree_util.tree_map(lambda a: a[ids], args)
+            _, vjp = jax.vjp(lambda sub, consts: fn(valid, *sub, *consts), sub, consts)
+            g_rows = g.at[target].get(mode="fill", fill_value=0)
+            d_sub, d_c = vjp(g_rows)
+            d_args = jax.tree_util.tree_map(lambda d, x: d.at[target].add(x, mode="drop"), d_args, d_sub)
+            return d_args, jax.tree_util.tree_map(jnp.add, d_consts, d_c)
+
+        return jax.lax.cond(start < count, pull, lambda carry: carry, carry), None
+
+    zeros = jax.tree_util.tree_map(jnp.zeros_like, (args, consts))
+    (d_args, d_consts), _ = jax.lax.scan(step, zeros, (first, runs))
+    return None, d_args, d_consts, g
+
+
+_chunks.defvjp(_chunks_fwd, _chunks_bwd)
 
 
 def active_rays_map(scatter, dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"], t1: Float[Array, "*B"], *,
                     chunk: int = 8192, block: int = 32, into: Float[Array, "*B 3"] | None = None
                     ) -> Float[Array, "*B 3"]:
     """scatter(dirs, t0, t1) (-> (*B, 3), zero where t1 <= t0) evaluated only where needed: the
-    rays are cut into runs of `block` consecutive pixels, the runs holding a ray with t1 > t0 are
-    compacted to the front (`jnp.nonzero` with a static size), evaluated `chunk` rays at a time
-    under `lax.map` (a chunk past the active count is skipped by `lax.cond`) and scattered back.
-    Same values as scatter on every ray, at the cost of the active runs only. Runs, not single rays:
-    compacting and scattering back whole runs moves contiguous memory (around an empty kernel at
-    720 x 480, CPU: per-ray compaction 13 ms per light, runs of 32 6 ms), and at most a run's worth of rays is
-    evaluated in vain where a cone's edge crosses it. The earlier tiles of 24 x 40 pixels, each its
-    own loop iteration of ~30 small kernels, cost 0.1 s per light of loop overhead on the five-spot
-    stage; <= 43 chunks of 8192 rays at 720 x 480 make it vanish. Reverse mode recomputes each chunk
-    instead of stacking its intermediates. `into`: add the result to this image instead of zeros
+    rays are cut into runs of `block` consecutive pixels and the runs holding a ray with t1 > t0
+    are evaluated, `chunk` rays at a time (`map_active_runs`). Same values as scatter on every ray,
+    at the cost of the active runs only. Runs, not single rays: compacting and scattering back
+    whole runs moves contiguous memory (around an empty kernel at 720 x 480, CPU: per-ray
+    compaction 13 ms per light, runs of 32 6 ms), and at most a run's worth of rays is evaluated
+    in vain where a cone's edge crosses it. `into`: add the result to this image instead of zeros
     (the frame accumulates its lights in one buffer)."""
     shape = t0.shape
     n = t0.size
     block = int(min(block, n))
     n_runs = -(-n // block)
-    per_chunk = max(1, int(chunk) // block)
-    n_chunks = -(-n_runs // per_chunk)
     pad = n_runs * block - n
     d = jnp.pad(dirs.reshape((-1, 3)), ((0, pad), (0, 0))).reshape((n_runs, block, 3))
     a = jnp.pad(t0.reshape((-1,)), (0, pad)).reshape((n_runs, block))
     b = jnp.pad(t1.reshape((-1,)), (0, pad)).reshape((n_runs, block))
-    active = jnp.max(b - a, axis=1) > 0
-    count = jnp.sum(active)
-    runs = jnp.nonzero(active, size=n_chunks * per_chunk, fill_value=0)[0].reshape((n_chunks, per_chunk))
-    first = jnp.arange(n_chunks) * per_chunk
-
-    def one_chunk(args):
-        start, ids = args
-        valid = (start + jnp.arange(per_chunk) < count)[:, None]  # runs past the active count: empty
-        zero = jnp.zeros((per_chunk, block), a.dtype)
-        args = (d[ids].reshape((-1, 3)), jnp.where(valid, a[ids], zero).reshape((-1,)),
-                jnp.where(valid, b[ids], zero).reshape((-1,)))
-        empty = jnp.zeros((per_chunk * block, 3), a.dtype)
-        out = jax.lax.cond(start < count, lambda x: scatter(*x), lambda x: empty, args)
-        return out.reshape((per_chunk, block, 3))
-
-    one_chunk = jax.checkpoint(one_chunk, policy=jax.checkpoint_policies.nothing_saveable)
-    out = jax.lax.map(one_chunk, (first, runs))
-    valid = (jnp.arange(n_chunks * per_chunk) < count).reshape((n_chunks, per_chunk))
-    target = jnp.where(valid, runs, n_runs).reshape((-1,))  # index n_runs: dropped
-    base = (jnp.zeros((n_runs, block, 3), out.dtype) if into is None
+    base = (jnp.zeros((n_runs, block, 3), dirs.dtype) if into is None
             else jnp.pad(into.reshape((-1, 3)), ((0, pad), (0, 0))).reshape((n_runs, block, 3)))
-    image = base.at[target].add(out.reshape((-1, block, 3)), mode="drop")
+
+    def evaluate(valid, d, a, b):
+        a = jnp.where(valid[:, None], a, 0.0)
+        b = jnp.where(valid[:, None], b, 0.0)
+        return scatter(d.reshape((-1, 3)), a.reshape((-1,)), b.reshape((-1,))).reshape(d.shape)
+
+    image = map_active_runs(evaluate, jnp.max(b - a, axis=1) > 0, (d, a, b), chunk_runs=max(1, int(chunk) // block),
+                            into=base)
     return image.reshape((-1, 3))[:n].reshape(shape + (3,))
 
 
-def primary_hits(scene: ShaftsScene):
-    """(dirs, t, normals, albedo, points) of the camera's primary rays (t = inf on a miss)."""
+def primary_hits(scene: ShaftsScene, dirs: Float[Array, "*B 3"] | None = None):
+    """(dirs, t, normals, albedo, points) of the camera's primary rays, or of the rays from the eye
+    along `dirs` (t = inf on a miss)."""
     eye = scene.camera.eye
-    dirs = scene.camera.primary_rays()
+    dirs = scene.camera.primary_rays() if dirs is None else dirs
     t_hit, normals, albedo = cast_rays(eye, dirs, scene.prims)
     return dirs, t_hit, normals, albedo, hit_point(eye, dirs, t_hit, far=FAR)
 
 
-class _Frame(eqx.Module):
+class Frame(eqx.Module):
     """What every light's in-scattering shares: primary rays and hits, shadow maps, a density
     grid's volumes, the surfaces' shading."""
 
@@ -285,9 +366,12 @@ class _Frame(eqx.Module):
     surface: Array
 
 
-def _frame(scene: ShaftsScene, *, shadow_map: int | None, surface_shadows: str, fog_nodes) -> _Frame:
+def shade_frame(scene: ShaftsScene, *, shadow_map: int | None, surface_shadows: str, fog_nodes,
+                dirs: Float[Array, "*B 3"] | None = None) -> Frame:
+    """The shared part of a frame (`Frame`) for the camera's primary rays (H, W), or for the rays
+    along `dirs` (any layout: the adaptive method orders its pixels cell by cell)."""
     # stored once: XLA on CPU otherwise recasts the primary rays inside each of their consumers
-    dirs, t_hit, normals, albedo, points = materialize(primary_hits, scene)
+    dirs, t_hit, normals, albedo, points = materialize(primary_hits, scene, dirs)
     res = scene.render.shadow_map if shadow_map is None else int(shadow_map)
     # stored too: else each surface lookup recasts its texel's ray (XLA fuses the map into the gather)
     maps = materialize(functools.partial(shadow_maps, resolution=res), scene)
@@ -295,60 +379,76 @@ def _frame(scene: ShaftsScene, *, shadow_map: int | None, surface_shadows: str, 
     # the density grid's optical-depth volumes (stored once, like the maps)
     fog = None if scene.medium.density is None else materialize(
         functools.partial(fog_volumes, nodes=fog_nodes), scene)
+    surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
+    footprint = pixel_angle(scene) * surface_t / MAP_DETAIL  # light maps at the level the pixel needs
     if fog is None:
-        surface = surface_term(scene, points, normals, albedo, t_hit, visibility)
+        surface = surface_term(scene, points, normals, albedo, t_hit, visibility, footprint=footprint)
     else:
         surface = surface_term(scene, points, normals, albedo, t_hit, visibility, light_depth=fog.light_depth,
-                               view_depth=fog.view_depth(scene, dirs, jnp.where(jnp.isfinite(t_hit), t_hit, 0.0)))
-    surface_t = jnp.where(jnp.isfinite(t_hit), t_hit, FAR)
-    return _Frame(dirs, surface_t, maps, fog, surface)
+                               view_depth=fog.view_depth(scene, dirs, jnp.where(jnp.isfinite(t_hit), t_hit, 0.0)),
+                               footprint=footprint)
+    return Frame(dirs, surface_t, maps, fog, surface)
 
 
-def _light_scatters(scene: ShaftsScene, frame: _Frame, *, samples: int, bake: int):
-    """(scatter(dirs, t0, t1), t0, t1) of every light: its `equiangular_scattering` and cone intervals."""
+def pixel_angle(scene: ShaftsScene) -> Float[Array, ""]:
+    """The angle between neighbouring pixels' rays at the image's centre (radians)."""
+    return 2.0 * scene.camera.tan_half_fov / scene.camera.height
+
+
+def light_scatter_fns(scene: ShaftsScene, frame: Frame, *, samples: int, map_taps: int = 1):
+    """(scatter(dirs, t0, t1), reach) of every light: its `equiangular_scattering` with the frame's
+    shadow map and fog lookups bound, and the reach of its cone (`cone_intervals`)."""
     rho, kappa, K = scene.medium.rho, scene.medium.kappa, scene.medium.K
     for index, (light, sm) in enumerate(zip(scene.lights, frame.maps)):
         depth = jax.lax.stop_gradient(sm.depth)
-        baked = bake_light_map(light, bake=bake)
-        reach = light_reach(scene, light)
-        t0, t1 = materialize(functools.partial(cone_intervals, scene, light), frame.dirs, frame.surface_t, reach)
         ray_fog = None if frame.fog is None else frame.fog.for_light(index)
-        yield (functools.partial(equiangular_scattering, light, depth, baked, scene.camera.eye, rho=rho, kappa=kappa,
-                                 K=K, bias=scene.render.shadow_bias, samples=samples, fog=ray_fog), t0, t1)
+        yield (functools.partial(equiangular_scattering, light, depth, scene.camera.eye, rho=rho, kappa=kappa, K=K,
+                                 bias=scene.render.shadow_bias, samples=samples, pixel_angle=pixel_angle(scene),
+                                 map_taps=map_taps, fog=ray_fog), light_reach(scene, light))
+
+
+def _light_scatters(scene: ShaftsScene, frame: Frame, *, samples: int, map_taps: int = 1):
+    """(scatter(dirs, t0, t1), t0, t1) of every light: its `equiangular_scattering` and cone intervals."""
+    for light, (scatter, reach) in zip(scene.lights, light_scatter_fns(scene, frame, samples=samples,
+                                                                      map_taps=map_taps)):
+        t0, t1 = materialize(functools.partial(cone_intervals, scene, light), frame.dirs, frame.surface_t, reach)
+        yield scatter, t0, t1
 
 
 def equiangular_ladder(scene: ShaftsScene, groups: tuple[tuple[int, ...], ...], reference: int, *,
-                       shadow_map: int | None = 512, bake: int = _BAKE,
+                       shadow_map: int | None = 512, map_taps: int = 1,
                        fog_nodes: int | tuple[int, int] | None = None, **_unused
                        ) -> tuple[list[Float[Array, "H W 3"]], Float[Array, "H W 3"]]:
     """The in-scattered light of `scene` at each sample count of `groups` and at `reference`
-    samples, as `render_equiangular` renders it, sharing the rays, maps and volumes: what
-    `choose_counts` measures on its proxy. The counts of a group share one compiled kernel of
-    `max(group)` slots (the first n used, under `lax.map`); every ray is evaluated (no pruning:
-    proxies are small). Returns (images in the order of the groups' counts, the reference)."""
-    frame = _frame(scene, shadow_map=shadow_map, surface_shadows="map", fog_nodes=fog_nodes)
+    samples, as `render_equiangular` renders it (`map_taps` light-map taps a sample), sharing the
+    rays, maps and volumes: what `choose_counts` measures on its proxy. The counts of a group share
+    one compiled kernel of `max(group)` slots (the first n used, under `lax.map`); every ray is
+    evaluated (no pruning: proxies are small). Returns (images in the order of the groups' counts,
+    the reference)."""
+    frame = shade_frame(scene, shadow_map=shadow_map, surface_shadows="map", fog_nodes=fog_nodes)
     images = []
     for group in groups:
         capacity = max(group)
 
         def at_count(n, capacity=capacity):
             return sum(scatter(frame.dirs, t0, t1, count=n)
-                       for scatter, t0, t1 in _light_scatters(scene, frame, samples=capacity, bake=bake))
+                       for scatter, t0, t1 in _light_scatters(scene, frame, samples=capacity, map_taps=map_taps))
 
         images += list(jax.lax.map(at_count, jnp.asarray(group, dtype=frame.dirs.dtype)))
     ref = sum(scatter(frame.dirs, t0, t1) for scatter, t0, t1 in _light_scatters(scene, frame, samples=reference,
-                                                                                bake=bake))
+                                                                                map_taps=map_taps))
     return images, ref
 
 
-def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int | None = 512,
+def render_equiangular(scene: ShaftsScene, *, samples: int = 24, map_taps: int = 1, shadow_map: int | None = 512,
                        surface_shadows: str = "map", chunk: int = 8192, prune: bool = True,
-                       bake: int = _BAKE, fog_nodes: int | tuple[int, int] | None = None,
+                       fog_nodes: int | tuple[int, int] | None = None,
                        return_parts: bool = False
                        ) -> Float[Array, "H W 3"]:
     """Render `scene` (H, W, 3 linear RGB): surfaces (shadow rays, two-sided Lambert, extinction)
     plus every light's in-scattering by `equiangular_scattering` with `samples` per pixel and light
-    (24: about 1 % relative RMS on the five-spot stage; 16: about 2.4 %).
+    and `map_taps` light-map taps a sample, at every pixel (`render_adaptive`, the default method,
+    evaluates it at the pixels that need it).
 
     shadow_map: shadow-map resolution, default 512 (None: the scene's `render.shadow_map`, the
     plane method's setting, 1024 by default). On the five-spot stage the in-scattering error is the
@@ -359,14 +459,14 @@ def render_equiangular(scene: ShaftsScene, *, samples: int = 24, shadow_map: int
     shadow rays, as the ray march; ~5x the cost of the surface pass).
     prune: evaluate each light only on the rays that pass through its cone in front of the visible
     surface (`active_rays_map`, in chunks of `chunk` rays); prune=False evaluates every pixel in one
-    vectorized pass (same image; a smaller graph for tiny images and tests). bake:
-    light-map refinement factor (`bake_light_map`). fog_nodes: (directions across, distances) of
-    a density grid's optical-depth volumes, or one number for both (default `volume_nodes`). return_parts: also return
-    (surface, per-light in-scattering list). Jittable, differentiable; no retrace when light or medium values change.
+    vectorized pass (same image; a smaller graph for tiny images and tests). fog_nodes: (directions
+    across, distances) of a density grid's optical-depth volumes, or one number for both (default
+    `volume_nodes`). return_parts: also return (surface, per-light in-scattering list). Jittable,
+    differentiable; no retrace when light or medium values change.
     """
-    frame = _frame(scene, shadow_map=shadow_map, surface_shadows=surface_shadows, fog_nodes=fog_nodes)
+    frame = shade_frame(scene, shadow_map=shadow_map, surface_shadows=surface_shadows, fog_nodes=fog_nodes)
     per_light, image = [], frame.surface
-    for scatter, t0, t1 in _light_scatters(scene, frame, samples=samples, bake=bake):
+    for scatter, t0, t1 in _light_scatters(scene, frame, samples=samples, map_taps=map_taps):
         if not prune:
             per_light.append(scatter(frame.dirs, t0, t1))
         elif return_parts:

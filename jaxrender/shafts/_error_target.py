@@ -8,7 +8,9 @@ The estimate renders a proxy of the scene, the same camera and lights at ~`proxy
 and measures each count's relative RMS against the reference. A method's error comes from the
 quadrature along the rays (it falls as the counts grow) while its fixed parts (shadow-map and
 light-map texels, a grid's volumes) change little with them, so:
-- equiangular and raymarch (`samples`): the error at 8, 16, 24, 32, 48 samples against 96; the
+- adaptive, equiangular and raymarch (`samples`): the error at 8, 16, 24, 32, 48 samples against
+  96 (the adaptive method's: its equiangular rays, with its light-map taps, at every pixel of
+  the proxy; its interpolation's error is held by its own `tolerance`); the
   smallest whose error is within 0.9 E (the fixed parts' error is not in the proxy's). The error
   of a count is measured, not modelled: where a light map's pattern beats with the sample spacing
   it is not even monotone in the count. Beyond 48, a power law e = c n^-p through the
@@ -37,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._adaptive import MAP_TAPS as ADAPTIVE_MAP_TAPS
 from ._equiangular import equiangular_ladder
 from ._planes import render_planes
 from ._raymarch import render_raymarch
@@ -95,7 +98,10 @@ def _in_scattering(out):
 @functools.lru_cache(maxsize=32)
 def _ladder_fn(method: str, counts: tuple, options: tuple):
     opts = dict(options)
-    if method == "equiangular":
+    if method in ("adaptive", "equiangular"):  # the adaptive method's rays are equiangular rays
+        if method == "adaptive":
+            opts.setdefault("map_taps", ADAPTIVE_MAP_TAPS)
+
         def ladder(s):
             images, ref = equiangular_ladder(s, _GROUPS, counts[-1], **opts)
             return [*images, ref]
@@ -186,7 +192,7 @@ def _nnls2(A, b):
     return best
 
 
-def choose_counts(scene: ShaftsScene, target_error: float, *, method: str = "equiangular",
+def choose_counts(scene: ShaftsScene, target_error: float, *, method: str = "adaptive",
                   proxy_rays: int = PROXY_RAYS, **options) -> CountChoice:
     """The cheapest counts of `method` predicted to render `scene`'s in-scattered light within
     relative RMS `target_error` of the converged result (module docstring). `options`: the
@@ -197,7 +203,7 @@ def choose_counts(scene: ShaftsScene, target_error: float, *, method: str = "equ
     if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(scene)):
         raise ValueError("target_error needs concrete scene values: choose the counts with choose_counts() "
                          "outside jax.jit, then render with them")
-    if method not in ("equiangular", "planes", "raymarch"):
+    if method not in ("adaptive", "equiangular", "planes", "raymarch"):
         raise ValueError(f"unknown shafts method {method!r}")
     proxy = proxy_scene(scene, proxy_rays)
     start = time.perf_counter()

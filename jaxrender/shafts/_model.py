@@ -167,18 +167,20 @@ def cone_intervals(scene: ShaftsScene, light: SpotLight, dirs: Float[Array, "*B 
 
 def surface_term(scene: ShaftsScene, points: Float[Array, "*B 3"], normals: Float[Array, "*B 3"],
                  albedo: Float[Array, "*B 3"], surface_t: Float[Array, "*B"], visibility, *, quantize_bits: int = 0,
-                 light_depth=None, view_depth: Float[Array, "*B"] | None = None) -> Float[Array, "*B 3"]:
+                 light_depth=None, view_depth: Float[Array, "*B"] | None = None,
+                 footprint: Float[Array, "*B"] | None = None) -> Float[Array, "*B 3"]:
     """I_o exp(-rho kappa T): two-sided Lambert albedo/pi * sum_lights I |cos| / s^2 exp(-rho kappa s) H,
     attenuated toward the eye; 0 where the ray hits nothing. `visibility(light_index, points,
     normals, s)` gives H at the surface points (shadow rays or a shadow map).
 
     With a density grid the path lengths s and T become optical depths (integrals of d):
     `light_depth(light_index, points)` along the path from each light, `view_depth` along the
-    view ray to the surface (both required then)."""
+    view ray to the surface (both required then). `footprint`: the pixel's width at each point,
+    for light-map lookups at the mip level it needs (None: bilinear)."""
     sigma = scene.medium.sigma_t
     total = jnp.zeros_like(points)
     for index, light in enumerate(scene.lights):
-        I, s, w = light.radiant_intensity(points, quantize_bits=quantize_bits)
+        I, s, w = light.radiant_intensity(points, quantize_bits=quantize_bits, footprint=footprint)
         cos_i = jnp.abs(dot(w, normals))
         s_safe = jnp.maximum(s, S_FLOOR)
         H = visibility(index, points, normals, s)

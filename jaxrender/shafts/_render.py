@@ -1,6 +1,6 @@
 """One entry point for every light-shaft method, with antialiasing.
 
-    image = shafts.render(scene)                                   # equiangular (default), 1 sample per pixel
+    image = shafts.render(scene)                                   # adaptive (default), 1 sample per pixel
     image = shafts.render(scene, method="planes", samples_per_pixel=16, planes=30, subplanes=6)
     image = shafts.render(scene, target_error=0.02)                # counts chosen for 2 % (`choose_counts`)
 
@@ -21,6 +21,7 @@ from collections.abc import Callable
 import jax
 from jaxtyping import Array, Float
 
+from ._adaptive import render_adaptive
 from ._equiangular import render_equiangular
 from ._error_target import choose_counts
 from ._planes import render_planes
@@ -30,11 +31,12 @@ from ._scene import ShaftsScene
 __all__ = ["render", "supersample", "METHODS", "DEFAULT_METHOD"]
 
 METHODS: dict[str, Callable] = {
-    "equiangular": render_equiangular,  # fast single scattering (angle steps seen from the light)
+    "adaptive": render_adaptive,  # equiangular in-scattering where it is needed, interpolated between
+    "equiangular": render_equiangular,  # fast single scattering (angle steps seen from the light), every pixel
     "planes": render_planes,  # the paper's sample planes (8-bit emulation available)
     "raymarch": render_raymarch,  # the exact reference: shadow rays, uniform steps
 }
-DEFAULT_METHOD = "equiangular"
+DEFAULT_METHOD = "adaptive"
 
 
 def grid_side(samples_per_pixel: int) -> int:
@@ -71,7 +73,7 @@ def _jitted(method: str, samples_per_pixel: int, options: tuple):
 
 def render(scene: ShaftsScene, *, method: str = DEFAULT_METHOD, samples_per_pixel: int = 1,
            target_error: float | None = None, **options) -> Float[Array, "H W 3"]:
-    """Render `scene` with `method` ("equiangular", "planes" or "raymarch"; its keyword options
+    """Render `scene` with `method` ("adaptive", "equiangular", "planes" or "raymarch"; its keyword options
     pass through, e.g. samples=, planes=, quantize_bits=) and `samples_per_pixel` (k*k).
 
     target_error: instead of given counts, the cheapest counts predicted to keep the in-scattered

@@ -40,7 +40,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quantize-bits", type=int, default=0,
                         help="hardware emulation: bits of tables, maps and frame buffer (0 = float, 8 = paper)")
     parser.add_argument("--samples", type=int, default=None,
-                        help="samples along each view ray and light: equiangular (default 24) and raymarch "
+                        help="samples along each view ray and light: adaptive and equiangular (default 24), raymarch "
                              "(default 180); see --spp for samples per pixel")
     parser.add_argument("--error", type=number, default=None, metavar="E",
                         help="choose --samples (or --planes and --subplanes) so that the in-scattered light is "
