@@ -1,4 +1,4 @@
-"""Fog with a density grid (issue 24) in every light-shaft method.
+"""Fog with a density grid in every light-shaft method.
 
 Independent references: Mitsuba 3's `gridvolume` (the grid's lookup, value by value), a float64
 numpy brute force of the model written here from the issue's definition (scipy's

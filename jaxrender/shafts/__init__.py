@@ -3,7 +3,7 @@ single-scattering method, evaluated where the image needs it by the default meth
 a coarse grid of rays, refined at edges and silhouettes) or at every pixel, the sample-plane
 method with sub-sample planes and 8-bit hardware emulation (eqs. 5-9), and a ray-marched reference;
 `render` runs any of them with `samples_per_pixel` (k x k regular sub-pixel grid, box filter). Fog may vary in space: a
-`DensityGrid` in `Medium(density=...)` (issue 24; every method, differentiable in the grid).
+`DensityGrid` in `Medium(density=...)` (every method, differentiable in the grid).
 
     scene = jaxrender.app.scenes.load_shafts_scene("scene.json")
     image = jaxrender.shafts.render(scene, samples_per_pixel=4)                 # adaptive, 2 x 2 AA

@@ -1,4 +1,4 @@
-"""Fog whose density varies in space (issue 24): the density grid, its trilinear lookup, exact
+"""Fog whose density varies in space: the density grid, its trilinear lookup, exact
 optical depths along segments, and optical-depth volumes over a frustum seen from a light or the
 camera, in which the fast methods look the transmittance up.
 

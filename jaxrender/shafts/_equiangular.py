@@ -26,7 +26,7 @@ frame what a 64^2 one does: the gathers, not the map, cost). Cost per pixel and 
 (about 60 flops, one exp, 1 + map_taps gathers); only the rays that enter a light's cone are
 evaluated for it (`active_rays_map`).
 
-Fog with a density grid (issue 24): each sample also needs d(P) (a trilinear lookup of the
+Fog with a density grid: each sample also needs d(P) (a trilinear lookup of the
 grid), the optical depth toward the light (the light's `DepthVolume`, indexed by the same uv as
 the shadow map and the sample's distance) and toward the eye: the eye's volume gives it at the
 ends of the ray's interval and a trapezoid rule over the samples' own d fills in between,

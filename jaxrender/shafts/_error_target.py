@@ -1,4 +1,4 @@
-"""Sample counts chosen from an error target (issue 24; paper 000's open question of choosing the
+"""Sample counts chosen from an error target (paper 000's open question of choosing the
 numbers of planes and sub-planes): `choose_counts(scene, E)` picks the cheapest counts whose
 in-scattered light is predicted to lie within relative RMS E of the converged result.
 

@@ -26,7 +26,7 @@ Gradients: with tables, values come from the tables and the derivative w.r.t. rh
 from the closed-form F and h at the looked-up coordinates (they differ by the tables'
 interpolation error); without tables (`tables=False`) the gradient is exactly that of the image.
 
-Fog with a density grid (issue 24): g becomes F(alpha) h(s, t) D with the density factor
+Fog with a density grid: g becomes F(alpha) h(s, t) D with the density factor
 D = d(P) exp(rho kappa ((s + t) - (tau_l + tau_v))) evaluated per pixel at every plane (a 3-D
 texture lookup the 2001 hardware lacked; float also in B-bit mode): d from the grid, the optical
 depths tau_l toward the light and tau_v toward the eye from the volumes of `fog_volumes`. So the

@@ -4,7 +4,7 @@ a shadow RAY per sample, exact spot-light evaluation, no tables, no quantization
 For each light and pixel the view ray is cut to the part inside the light's cone (and in front of
 the visible surface, and within the light's reach; with a density grid, inside its box);
 `samples` midpoint samples cover that interval, so the result converges to the exact integral of
-eq. 2 as `samples` grows. With a density grid (issue 24) each sample's transmittance toward the
+eq. 2 as `samples` grows. With a density grid each sample's transmittance toward the
 eye and toward the light is exact: `segment_optical_depth` integrates the trilinear density
 piece by piece between voxel-centre planes (and the surfaces' light and view paths likewise).
 """

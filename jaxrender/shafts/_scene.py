@@ -15,7 +15,7 @@ from ._density import DensityGrid
 
 class Medium(eqx.Module):
     """Fog (paper 000): density `rho`, extinction coefficient `kappa`, phase scale `K`, and
-    optionally a `density` grid d(x) (issue 24, `DensityGrid`) that varies it in space.
+    optionally a `density` grid d(x) (`DensityGrid`) that varies it in space.
 
     Extinction per unit length is `rho*kappa*d(x)`; scattering per unit length per steradian is
     `rho*d(x)*F(a)` with `F(a) = K (1 + 9 cos^16(a/2))`; d = 1 everywhere without a grid (uniform
