@@ -5,10 +5,14 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 
 import nbclient
 import nbformat
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+from run_notebooks import code_sha256  # noqa: E402  (the one hash of a notebook's code, examples/)
 
 
 def run_notebook(path: Path, *, cwd: Path | None = None, timeout: int = 600) -> nbformat.NotebookNode:
@@ -62,11 +66,6 @@ def assert_outputs_current(path: Path, executed: nbformat.NotebookNode, results,
     ran, its recorded hash is that of the code now (examples/run_notebooks.py), and the results it
     printed (`results(nb)`: `tagged_results` or `last_results`) are those of the fresh run `executed`,
     numbers within `rtol` (other CPUs, other summation orders)."""
-    import sys
-
-    sys.path.insert(0, str(path.parent))
-    from run_notebooks import code_sha256
-
     stored = nbformat.read(path, as_version=4)
     recorded = stored.metadata.get("jaxrender", {}).get("code_sha256")
     assert recorded == code_sha256(stored) == code_sha256(executed), (

@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from notebook_helpers import last_results, run_notebook
+from notebook_helpers import assert_outputs_current, last_results, run_notebook
 
 NOTEBOOK = Path(__file__).parent.parent / "examples" / "fitting.ipynb"
 # 16 x 16 texels, 150 lights, 8-bit capture with shot/read noise: the fit recovers normals to a
@@ -14,7 +14,9 @@ CONVERGED_MIN = 0.9
 
 
 def test_fitting_notebook_runs():
-    summary = last_results(run_notebook(NOTEBOOK))
+    nb = run_notebook(NOTEBOOK)
+    assert_outputs_current(NOTEBOOK, nb, last_results)
+    summary = last_results(nb)
     assert summary["converged"] >= CONVERGED_MIN
     assert summary["normal_err_median_deg"] < NORMAL_MEDIAN_TOL_DEG
     assert summary["sigma_rel_err_median"] < SIGMA_MEDIAN_TOL

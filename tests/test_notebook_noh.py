@@ -2,12 +2,14 @@
 
 from pathlib import Path
 
-from notebook_helpers import last_results, run_notebook
+from notebook_helpers import assert_outputs_current, last_results, run_notebook
 
 
 def test_noh_notebook_runs_and_em_beats_the_ordinary_mip():
     path = Path(__file__).resolve().parents[1] / "examples" / "noh.ipynb"
-    results = last_results(run_notebook(path))
+    nb = run_notebook(path)
+    assert_outputs_current(path, nb, last_results)
+    results = last_results(nb)
     assert results["sizes"][0] == [16, 16] and results["sizes"][-1] == [1, 1]
     assert max(results["two_lobe_fraction"][1:]) > 0          # EM kept two lobes somewhere
     # at a distance the two-lobe EM level is much closer to the truth than the ordinary mip

@@ -6,7 +6,7 @@ import os
 from pathlib import Path
 
 import pytest
-from notebook_helpers import last_results, run_notebook
+from notebook_helpers import assert_outputs_current, last_results, run_notebook
 
 ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOK = ROOT / "examples" / "real_capture.ipynb"
@@ -22,7 +22,9 @@ def test_real_capture_notebook_runs():
     if not (data / "catPNG").is_dir():
         pytest.fail(f"DiLiGenT data not found at {data}: set JAXRENDER_DILIGENT (see README, 'Real captures')",
                     pytrace=False)
-    summary = last_results(run_notebook(NOTEBOOK))
+    nb = run_notebook(NOTEBOOK)
+    assert_outputs_current(NOTEBOOK, nb, last_results)
+    summary = last_results(nb)
     assert summary["normals_deg"] < NORMALS_TOL_DEG, summary
     assert summary["normals_deg"] < summary["lambertian_normals_deg"], summary
     assert summary["heldout"] < HELDOUT_RATIO_MAX * summary["heldout_lambertian"], summary
