@@ -13,8 +13,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
-from skimage.io import imread, imsave
 from skimage.transform import resize
 
 DOCS_IMAGES = Path(__file__).resolve().parents[1] / "docs" / "images"
@@ -37,10 +37,10 @@ def main() -> int:
         return 2
     DOCS_IMAGES.mkdir(exist_ok=True)
     for name, src in PICTURES.items():
-        image = imread(args.gallery / src)[..., :3]
+        image = iio.imread(args.gallery / src)[..., :3]
         height = round(image.shape[0] * WIDTH / image.shape[1])
         small = resize(image, (height, WIDTH), anti_aliasing=True, preserve_range=True)
-        imsave(DOCS_IMAGES / name, np.clip(small + 0.5, 0, 255).astype(np.uint8), quality=85)
+        iio.imwrite(DOCS_IMAGES / name, np.clip(small + 0.5, 0, 255).astype(np.uint8), quality=85)
         print(f"{DOCS_IMAGES / name}: from {src}")
     return 0
 

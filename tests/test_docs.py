@@ -23,6 +23,7 @@ from jaxrender.app.cli.programs import COMMAND_TABLES
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("jaxrender", "fitting", "sims")
 UNDOCUMENTED = ("jaxrender.app.cli",)  # the command lines have their own pages
+GALLERY_IMAGES = ("stage.jpg", "desert.jpg", "fitting.jpg", "noh.jpg")  # docs/images/, from `jaxrender gallery`
 BUILD_TIMEOUT_S = 300  # the build takes ~10 s; a hang must not eat the suite's budget
 
 
@@ -154,6 +155,17 @@ def _page_problems(site: Path) -> list[str]:
         firsts = [" ".join(line.split()) for c in cells for line in ["".join(c["source"]).strip().split("\n")[0]]]
         if not text or [line for line in firsts if line not in text]:
             problems.append(f"{notebook.name}: no page, or its code is not on it")
+        # stored with its outputs, the page shows its figures (embedded PNGs)
+        figures = sum("image/png" in out.get("data", {}) for c in cells for out in c.get("outputs", []))
+        shown = page.read_text().count("data:image/png;base64") if page.is_file() else 0
+        if figures == 0 or shown < figures:
+            problems.append(f"{notebook.name}: {figures} figures stored, {shown} on its page")
+    front = (site / "index.html").read_text()
+    for name in GALLERY_IMAGES:  # one picture per showcase, with the command that made it
+        if f'src="images/{name}"' not in front or not (site / "images" / name).is_file():
+            problems.append(f"index.md: gallery image images/{name} not shown")
+    if "jaxrender gallery --out" not in _text(front):
+        problems.append("index.md: the gallery command is not on the front page")
     if "Capture directory" not in _text((site / "formats" / "index.html").read_text()):
         problems.append("formats.md: not rendered")
     return problems
