@@ -10,15 +10,16 @@ N_LIGHTS = 10**5
 # peak resident memory of the child (Python, JAX, the parsed manifest of ~9 MB): before the streaming
 # validation the same run took 1.65 GB; this bound leaves room for JAX's own ~0.3 GB
 PEAK_RSS_MB = 800
-# the command line in a child that reports its own peak (RUSAGE_CHILDREN would be the largest of every
-# earlier child of this test process)
+# the command line in a child that reports its own peak: VmHWM of its address space (getrusage's
+# ru_maxrss would carry the forking test worker's peak across exec; RUSAGE_CHILDREN would be the
+# largest of every earlier child of this test process)
 CHILD = """
-import resource, sys
+import sys
 from jaxrender.app.cli.programs import fitting_main
 try:
     code = fitting_main(["ingest", sys.argv[1], "--store", sys.argv[2]])
 finally:
-    print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+    print(next(line.split()[1] for line in open("/proc/self/status") if line.startswith("VmHWM:")))  # kB
 sys.exit(code)
 """
 
