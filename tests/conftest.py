@@ -21,3 +21,29 @@ import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+# The inner loop (`python -m pytest -m quick -n 2`, about two minutes on 2 cores): every area's kernels
+# and file formats against their references, without the end-to-end commands, notebooks, brute-force
+# frames and benchmark runs that make up most of the full suite's time.
+QUICK_MODULES = {
+    "test_architecture", "test_atomic", "test_brdf", "test_btf_io", "test_bvh", "test_capture",
+    "test_capture_formats", "test_capture_limits", "test_desert_shadows", "test_dunes", "test_dust",
+    "test_envmap", "test_fields", "test_fire_cloth", "test_floor_reflection",
+    "test_foundation", "test_fusion", "test_gallery", "test_geometry", "test_hdr", "test_horizon_sweep",
+    "test_manifest", "test_pcss", "test_ripples", "test_shadow_map", "test_sky", "test_spot",
+    "test_varpro",
+}
+# The longest tests start first, so that under `-n 2` neither worker is left running one alone at the end.
+LONGEST_FIRST = ("test_benchmarks_quick.py::test_run_all_quick", "test_noh_bruteforce.py",
+                 "test_user_runs.py::test_gallery_quick", "test_user_runs.py::test_jaxrender_noh_small",
+                 "test_float32_frames.py::test_noh")
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.path.stem in QUICK_MODULES:
+            item.add_marker("quick")
+    rank = {i: next((k for k, key in enumerate(LONGEST_FIRST) if key in item.nodeid), len(LONGEST_FIRST))
+            for i, item in enumerate(items)}
+    order = sorted(range(len(items)), key=lambda i: rank[i])  # stable: the rest keep their order
+    items[:] = [items[i] for i in order]
