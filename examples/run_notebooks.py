@@ -23,6 +23,7 @@ import nbclient
 import nbformat
 
 HERE = Path(__file__).resolve().parent
+INLINE = "module://matplotlib_inline.backend_inline"  # figures stored as PNG in the outputs
 
 def code_sha256(nb: nbformat.NotebookNode) -> str:
     """The hash of the notebook's code cells, in order: what its outputs were computed from."""
@@ -33,15 +34,17 @@ def code_sha256(nb: nbformat.NotebookNode) -> str:
     return digest.hexdigest()
 
 
-def execute(path: Path, *, timeout: int = 1800) -> nbformat.NotebookNode:
-    """The notebook at `path` run top to bottom in a fresh python3 kernel in its folder (figures as
-    inline PNG); outputs in the returned notebook, the file untouched."""
+def execute(path: Path, *, cwd: Path | None = None, backend: str = INLINE, timeout: int = 1800,
+            ) -> nbformat.NotebookNode:
+    """The notebook at `path` run top to bottom in a fresh python3 kernel, working directory `cwd`
+    (default: its folder), matplotlib's `backend` (default: inline PNG figures; the tests use Agg);
+    outputs in the returned notebook, the file untouched. MPLBACKEND is restored afterwards."""
     nb = nbformat.read(path, as_version=4)
     saved = os.environ.get("MPLBACKEND")
-    os.environ["MPLBACKEND"] = "module://matplotlib_inline.backend_inline"
+    os.environ["MPLBACKEND"] = backend
     try:
         nbclient.NotebookClient(nb, timeout=timeout, kernel_name="python3",
-                                resources={"metadata": {"path": str(path.parent)}}).execute()
+                                resources={"metadata": {"path": str(cwd or path.parent)}}).execute()
     finally:
         if saved is None:
             os.environ.pop("MPLBACKEND", None)

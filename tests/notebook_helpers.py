@@ -4,32 +4,19 @@ fresh kernel (matplotlib's Agg backend), and their summary read back from what t
 from __future__ import annotations
 
 import json
-import os
 import sys
 from pathlib import Path
 
-import nbclient
 import nbformat
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-from run_notebooks import code_sha256  # noqa: E402  (the one hash of a notebook's code, examples/)
+from run_notebooks import code_sha256, execute  # noqa: E402  (examples/: one runner, one hash)
 
 
 def run_notebook(path: Path, *, cwd: Path | None = None, timeout: int = 600) -> nbformat.NotebookNode:
     """The notebook at `path` executed in a fresh python3 kernel, working directory `cwd` (default: the
-    notebook's folder); MPLBACKEND is Agg for the kernel and restored afterwards."""
-    nb = nbformat.read(path, as_version=4)
-    saved = os.environ.get("MPLBACKEND")
-    os.environ["MPLBACKEND"] = "Agg"
-    try:
-        nbclient.NotebookClient(nb, timeout=timeout, kernel_name="python3",
-                                resources={"metadata": {"path": str(cwd or path.parent)}}).execute()
-    finally:
-        if saved is None:
-            os.environ.pop("MPLBACKEND", None)
-        else:
-            os.environ["MPLBACKEND"] = saved
-    return nb
+    notebook's folder), matplotlib's Agg backend (no figures encoded)."""
+    return execute(path, cwd=cwd, backend="Agg", timeout=timeout)
 
 
 def tagged_results(nb: nbformat.NotebookNode, tag: str = "RESULTS ") -> dict:
