@@ -75,8 +75,9 @@ def main() -> None:
                 out[(label, frame, "float64")] = image, ref
         spec = dict(width=size[0], height=size[1], shadow_resolution=SHADOW_RESOLUTION, cases=cases)
         with tempfile.TemporaryDirectory() as tmp:
-            for (label, frame), (image, fr) in ({} if args.quick else float32_frames(spec, states, Path(tmp))).items():
-                out[(label, frame, "float32")] = image, render_reference(scenes[label], fr)
+            for (label, frame), (image, fr, scene32) in ({} if args.quick else
+                                                         float32_frames(spec, states, scenes, Path(tmp))).items():
+                out[(label, frame, "float32")] = image, render_reference(scene32, fr)
     rows, figures = [], {}
     FIGURES.mkdir(exist_ok=True)
     for (label, frame, dtype), (image, ref) in sorted(out.items()):

@@ -766,6 +766,8 @@ FLOAT32_CHILD = textwrap.dedent("""
     out = {}
     for label, frames in spec["cases"].items():
         scene = nr.case_scene(label, spec["width"], spec["height"], **nr.small_scene())
+        for i, leaf in enumerate(nr.float_leaves(scene)):
+            out[f"{label}_scene_{i}"] = np.asarray(leaf)
         for f in frames:
             x, xp, t = (data[f"{label}_{f}_{k}"] for k in ("x", "x_prev", "time"))
             state = ClothState(*(jax.numpy.asarray(a, jax.numpy.float32) for a in (x, xp, t)))
@@ -778,15 +780,35 @@ FLOAT32_CHILD = textwrap.dedent("""
 """)
 
 
+def float_leaves(scene) -> list:
+    """The scene's floating-point arrays, in tree order."""
+    return [leaf for leaf in jax.tree_util.tree_leaves(scene)
+            if isinstance(leaf, jax.Array) and jnp.issubdtype(leaf.dtype, jnp.floating)]
+
+
+def with_float_leaves(scene, leaves: list):
+    """`scene` with its floating-point arrays replaced by `leaves` (cast to each array's dtype):
+    the float32 child's scene in the parent's precision. A seed draws different procedural
+    materials in float32 and float64 (`jax.random` draws per dtype), so the reference of a float32
+    frame must shade the scene that frame was rendered from."""
+    values = iter(leaves)
+    flat, tree = jax.tree_util.tree_flatten(scene)
+    flat = [jnp.asarray(next(values), leaf.dtype)
+            if isinstance(leaf, jax.Array) and jnp.issubdtype(leaf.dtype, jnp.floating) else leaf
+            for leaf in flat]
+    return jax.tree_util.tree_unflatten(tree, flat)
+
+
 def small_scene() -> dict:
     """The scene's detail for the comparison (what it proves does not need more): level-0 BTFs of
     8 texels, 32 x 16 flame textures; the robe as rendered."""
     return dict(btfs=default_btfs(size=8, pyramid="none"), flame_size=(32, 16))
 
 
-def float32_frames(spec: dict, states: dict, workdir: Path) -> dict:
+def float32_frames(spec: dict, states: dict, scenes: dict, workdir: Path) -> dict:
     """Run `FLOAT32_CHILD` (`spec`: width, height, shadow_resolution, cases {label: frames};
-    `states`: {label_frame_x|x_prev|time: array}); returns {(label, frame): (image, Frame)}."""
+    `states`: {label_frame_x|x_prev|time: array}; `scenes`: {label: the parent's scene}); returns
+    {(label, frame): (image, Frame, the child's scene in the parent's precision)}."""
     np.savez(workdir / "states.npz", **states)
     env = dict(os.environ)
     env.pop("JAX_ENABLE_X64", None)
@@ -798,10 +820,12 @@ def float32_frames(spec: dict, states: dict, workdir: Path) -> dict:
     data = np.load(workdir / "float32.npz")
     out = {}
     for label, frames in spec["cases"].items():
+        count = sum(k.startswith(f"{label}_scene_") for k in data.files)
+        scene = with_float_leaves(scenes[label], [data[f"{label}_scene_{i}"] for i in range(count)])
         for f in frames:
             fields = {k: np.asarray(data[f"{label}_{f}_{k}"]) for k in Frame.__dataclass_fields__}
             fields = {k: (v.astype(np.float64) if v.dtype.kind == "f" else v) for k, v in fields.items()}
-            out[(label, f)] = (np.asarray(data[f"{label}_{f}_image"], np.float64), Frame(**fields))
+            out[(label, f)] = (np.asarray(data[f"{label}_{f}_image"], np.float64), Frame(**fields), scene)
     return out
 
 
