@@ -34,9 +34,13 @@ QUICK_MODULES = {
     "test_varpro",
 }
 # The longest tests start first, so that under `-n 2` neither worker is left running one alone at the end.
-LONGEST_FIRST = ("test_benchmarks_quick.py::test_run_all_quick", "test_noh_bruteforce.py",
-                 "test_user_runs.py::test_gallery_quick", "test_user_runs.py::test_jaxrender_noh_small",
-                 "test_float32_frames.py::test_noh")
+LONGEST_FIRST = ("test_noh_bruteforce.py", "test_user_runs.py::TestGallery", "test_user_runs.py::TestNohCommand",
+                 "test_benchmarks_quick.py::TestNohScripts", "test_benchmarks_quick.py::TestShaftsScripts",
+                 "test_dask_fit.py", "test_shafts_adaptive.py", "test_robe_collision.py", "test_user_runs.py",
+                 "test_benchmarks_quick.py")
+# Under xdist (`--dist loadscope`, pyproject.toml) the tests of a module (or of a class) run on one
+# worker, so that its module fixtures and compiled functions are made once, not once per worker;
+# test_benchmarks_quick and test_user_runs put their independent runs in classes to share them out.
 
 
 def pytest_collection_modifyitems(config, items):

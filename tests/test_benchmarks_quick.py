@@ -1,10 +1,12 @@
-"""Every benchmark script still runs: `benchmarks/run_all.py --quick` runs each `benchmarks/*.py`
-(not starting with `_`) with --quick at a small size; none may write into benchmarks/RESULTS.md or
-benchmarks/results/, and the result rows they write go to a scratch directory where they are
-checked (complete rows, a summary table built from them). Also the summary-table rebuild on a
-scratch copy of RESULTS.md."""
+"""Every benchmark script still runs: each `benchmarks/*.py` (not starting with `_`) with --quick at a
+small size, one test per script (so that the test workers share them out), the way
+`benchmarks/run_all.py --quick` runs them (`run_all.run_script`); none may write into
+benchmarks/RESULTS.md or benchmarks/results/, and the result rows they write go to a scratch
+directory where they are checked (complete rows, a summary table built from them). `run_all.py
+--quick` itself, on one script; the summary-table rebuild on a scratch copy of RESULTS.md."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -12,35 +14,94 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-# Not a speed claim (no timed asserts): CI's budget for the smoke run is 3 minutes; this only stops a hang,
-# with room for a loaded machine (the run took 294 s inside a parallel pytest run before the --quick cuts).
-HANG_GUARD_S = 600
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import run_all  # noqa: E402
+
+# Not a speed claim (no timed asserts): only stops a hang, with room for a slow, loaded machine.
+HANG_GUARD_S = 900
+# the scripts whose quick run reaches write_results (their rows go to the scratch directory, not results/)
+WRITE_ROWS = {"fit_speed", "ripples_speed", "ripples_wavelength", "shafts_vs_mitsuba"}
 
 
-def test_run_all_quick_runs_every_script_and_writes_nothing(tmp_path):
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import run_all
+# The scripts by area, each area a class: under `--dist loadscope` the test workers share the classes out.
+AREA_PREFIXES = {"noh": ("noh_",), "shafts": ("shafts_",), "fitting": ("fit_", "em_", "capture_", "real_"),
+                 "desert": ("desert_", "dunes_", "ripples_", "horizon_")}
 
+
+def scripts_of(area: str) -> list[Path]:
+    """The benchmark scripts of `area`; "other": those of no area above (a new script is never left out)."""
+    def area_of(path: Path) -> str:
+        return next((a for a, prefixes in AREA_PREFIXES.items() if path.stem.startswith(prefixes)), "other")
+    return [p for p in run_all.scripts() if area_of(p) == area]
+
+
+def check_script(script: Path, tmp_path: Path) -> None:
+    """`script --quick` exits 0, writes nothing into RESULTS.md or results/, and its result rows (in a
+    scratch directory) are complete and build a table."""
     before = run_all._fingerprint()
     rows_dir = tmp_path / "rows"
-    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "run_all.py"), "--quick", "--results-dir",
-                           str(rows_dir)], cwd=ROOT, capture_output=True, text=True, timeout=HANG_GUARD_S)
-    print(proc.stdout)  # each script's wall and CPU seconds (shown with pytest -rA)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    names = {p.name for p in run_all.scripts()}
-    ran = {line.split()[1] for line in proc.stdout.splitlines() if line.startswith("ok ")}
-    assert ran == names  # every script ran to the end with exit code 0
+    rows_dir.mkdir()
+    name, code, wall, cpu, tail = run_all.run_script(script, True, HANG_GUARD_S, rows_dir,
+                                                     os.environ.get("JAX_COMPILATION_CACHE_DIR"))
+    print(f"{name}: {wall:.1f} s wall, {cpu:.1f} s CPU")  # (shown with pytest -rA)
+    assert code == 0, tail
     assert run_all._fingerprint() == before  # RESULTS.md and results/ untouched
     written = {p.stem for p in rows_dir.glob("*.json")}
-    # the scripts whose quick run reaches write_results (their rows went to the scratch directory, not results/)
-    assert {"fit_speed", "ripples_speed", "ripples_wavelength", "shafts_vs_mitsuba"} <= written, written
-    assert run_all.check_results(rows_dir) == []  # each loads, has complete rows, and the table builds from them
+    assert written <= {script.stem}
+    if script.stem in WRITE_ROWS:
+        assert written == {script.stem}
+    assert run_all.check_results(rows_dir) == []  # it loads, has complete rows, and the table builds from them
+
+
+def _ids(p: Path) -> str:
+    return p.stem
+
+
+class TestNohScripts:
+    @pytest.mark.parametrize("script", scripts_of("noh"), ids=_ids)
+    def test_benchmark_script_runs_quick(self, script, tmp_path):
+        check_script(script, tmp_path)
+
+
+class TestShaftsScripts:
+    @pytest.mark.parametrize("script", scripts_of("shafts"), ids=_ids)
+    def test_benchmark_script_runs_quick(self, script, tmp_path):
+        check_script(script, tmp_path)
+
+
+class TestFittingScripts:
+    @pytest.mark.parametrize("script", scripts_of("fitting"), ids=_ids)
+    def test_benchmark_script_runs_quick(self, script, tmp_path):
+        check_script(script, tmp_path)
+
+
+class TestDesertScripts:
+    @pytest.mark.parametrize("script", scripts_of("desert"), ids=_ids)
+    def test_benchmark_script_runs_quick(self, script, tmp_path):
+        check_script(script, tmp_path)
+
+
+class TestOtherScripts:
+    @pytest.mark.parametrize("script", scripts_of("other"), ids=_ids)
+    def test_benchmark_script_runs_quick(self, script, tmp_path):
+        check_script(script, tmp_path)
+
+
+def test_run_all_quick_runs_the_scripts_asked_for(tmp_path):
+    rows_dir = tmp_path / "rows"
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "run_all.py"), "--quick", "--only",
+                           "ripples_wavelength", "--results-dir", str(rows_dir)], cwd=ROOT, capture_output=True,
+                          text=True, timeout=HANG_GUARD_S)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert [line.split()[1] for line in proc.stdout.splitlines() if line.startswith("ok ")] == ["ripples_wavelength.py"]
+    assert "1 scripts in" in proc.stdout and "0 failed" in proc.stdout
+    assert {p.stem for p in rows_dir.glob("*.json")} == {"ripples_wavelength"}
+    bad = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "run_all.py"), "--quick", "--only", "nothing"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "no benchmark script named ['nothing']" in bad.stderr
 
 
 def test_area_tables_rebuilt_from_the_result_rows(tmp_path, monkeypatch):
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import run_all
-
     md = tmp_path / "RESULTS.md"
     begin_end = {area: run_all.markers(area) for area in run_all.AREAS}
     sections = "".join(f"## {area}\n\n{begin}\n| old | row |\n{end}\n\nhow {area}\n\n"

@@ -5,6 +5,9 @@ without x64 (as the command line runs), from the same inputs written to disk: gi
 fields (the automata themselves are chaotic, so their float32 and float64 fields differ as any two
 seeds do, and are tested in test_ripples / test_dunes), the same camera and sun. Dust is off in
 the desert comparison: its particles come from random draws whose bits depend on the dtype.
+
+The Takigi Noh frame's float32 check is tests/test_noh_bruteforce.py: the float32 frame against the
+float64 brute-force reference of its own state, within the same tolerance as the float64 frame.
 """
 
 import json
@@ -87,61 +90,3 @@ def test_desert_frame_float32_matches_float64(tmp_path):
     assert shown64.std() > 0.05  # a picture with dunes, shadows and sky, not a flat one
     assert diff.mean() < DESERT_MEAN_TOL, diff.mean()
     assert np.mean(diff > DESERT_PIXEL_TOL) < DESERT_OUTLIER_FRACTION, np.mean(diff > DESERT_PIXEL_TOL)
-
-
-# float32 vs float64 Noh frame (64 x 48, 1 frame, 20 environment + 20 fire samples per performer
-# pixel; the stage's light is deterministic). The Monte Carlo draws come from the same keys, but their
-# bits depend on the dtype, and the robe's Verlet steps round differently, so the two frames are two
-# estimates of the same image: compared through means, whose noise averages out. Measured on the
-# Takigi Noh scene: image means 0.04434 (float32) vs 0.04443 (float64), 0.2 % apart; the
-# median over the lit 8 x 8-pixel blocks of their relative difference 0.011 % (the performer covers a
-# few blocks). The bounds were set on the earlier scene (0.9 % and 4.3 % measured there) and kept. A
-# float32 defect (NaN, a black or blown-out region, a wrong exposure) moves these by far more.
-NOH_MEAN_RTOL = 0.02
-NOH_BLOCK_MEDIAN_RTOL = 0.08
-
-_NOH_CHILD = textwrap.dedent("""
-    import json, sys
-    import numpy as np
-    import jax
-    assert not jax.config.jax_enable_x64
-    from jaxrender.app.scenes.noh import default_btfs, render_noh
-    spec = json.loads(sys.argv[2])
-    frames = render_noh(frames=1, width=spec["width"], height=spec["height"], key=jax.random.key(spec["seed"]),
-                        btfs=default_btfs(size=8, pyramid="none"), **spec["small"])
-    np.save(sys.argv[3], np.asarray(frames[0]))
-""")
-# the Noh scene at a small size (a coarse robe, small shadow maps and flames, level-0 BTFs): the
-# comparison is of the dtype, not of the detail
-_NOH_SMALL = dict(robe=dict(rows=12, cols=12, sleeve_rows=4, sleeve_cols=8, settle_steps=400), shadow_resolution=64,
-                  flame_size=(16, 8))
-
-
-def block_means(image: np.ndarray, block: int = 8) -> np.ndarray:
-    h, w = image.shape[0] // block * block, image.shape[1] // block * block
-    lum = image[:h, :w].mean(axis=-1)
-    return lum.reshape(h // block, block, w // block, block).mean(axis=(1, 3))
-
-
-def test_noh_frame_float32_matches_float64(tmp_path):
-    import jax
-
-    from jaxrender.app.scenes.noh import default_btfs, render_noh
-
-    spec = dict(width=64, height=48, seed=0, small=_NOH_SMALL)
-    image32 = render_float32_child(tmp_path, _NOH_CHILD, {"unused": np.zeros(1)}, spec)
-    # the Noh scene broadcasts a (3,) colour against (H, W, 1) arrays: allowed here only (the suite
-    # raises on implicit rank promotion; the command line does not set that option)
-    with jax.numpy_rank_promotion("allow"):
-        frames64 = render_noh(frames=1, width=spec["width"], height=spec["height"], key=jax.random.key(spec["seed"]),
-                              btfs=default_btfs(size=8, pyramid="none"), **_NOH_SMALL)
-    image64 = np.asarray(frames64[0], np.float64)
-    assert image32.shape == image64.shape == (48, 64, 3)
-    assert np.all(np.isfinite(image32)) and image32.min() >= 0.0
-    mean32, mean64 = image32.mean(), image64.mean()
-    print("Noh image means float32 / float64:", mean32, mean64)
-    assert abs(mean32 / mean64 - 1) < NOH_MEAN_RTOL
-    lit = block_means(image64) > 0.1 * block_means(image64).max()
-    rel = np.abs(block_means(image32)[lit] / block_means(image64)[lit] - 1)
-    print("median relative difference over the lit 8 x 8 blocks:", np.median(rel))
-    assert np.median(rel) < NOH_BLOCK_MEDIAN_RTOL

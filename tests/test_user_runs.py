@@ -158,35 +158,36 @@ def relabelled_walk(path: Path) -> Path:
     return path
 
 
-def test_jaxrender_noh_small(tmp_path):
-    """Two 64 x 48 frames of the Noh scene dancing an odd motion (a real walk with relabelled rotation
-    channels, BOM, CRLF), written with `--out .` into a folder of the user's that holds the motion
-    (its files stay): PNG + linear EXR per frame, the GIF and the MP4; the frames are pictures, and
-    they differ (the fires flicker) but show the same scene. With `--meshes`, each frame's body and
-    robe as OBJ (`assert_performer_meshes`)."""
-    out = tmp_path / "noh"
-    kept = users_folder(out)
-    motion = relabelled_walk(out / "walk.bvh")
-    kept[motion] = motion.read_bytes()
-    proc = run("jaxrender", "noh", "--out", ".", "--motion", "walk.bvh", "--frames", "2", "--width", "64",
-               "--height", "48", "--meshes", cwd=out)
-    assert "2 frames" in proc.stdout
-    assert_kept(kept)
-    assert not [p for p in out.iterdir() if p.name.startswith(".")]   # no staging folder left
-    frames = []
-    for i in range(2):
-        png = read_rgb(out / f"frame_{i:03d}.png")
-        exr = read_rgb(out / f"frame_{i:03d}.exr")
-        assert png.shape == exr.shape == (48, 64, 3)
-        assert_picture(png)
-        assert np.all(np.isfinite(exr)) and exr.min() >= 0.0 and exr.max() > 0.0
-        frames.append(exr)
-    change = np.abs(frames[1] - frames[0]).mean() / frames[0].mean()
-    assert 1e-4 < change < 0.5, change  # flicker, not a different scene (or a frozen one)
-    gif = skio.imread(out / "noh.gif")
-    assert gif.shape[0] == 2 and gif.shape[1:3] == (48, 64)
-    assert (out / "noh.mp4").read_bytes()[4:8] == b"ftyp"      # an MP4 (ISO media) file beside them
-    assert_performer_meshes(out / "meshes", frames=2)
+class TestNohCommand:  # its own scope under --dist loadscope (conftest.py)
+    def test_jaxrender_noh_small(self, tmp_path):
+        """Two 64 x 48 frames of the Noh scene dancing an odd motion (a real walk with relabelled rotation
+        channels, BOM, CRLF), written with `--out .` into a folder of the user's that holds the motion
+        (its files stay): PNG + linear EXR per frame, the GIF and the MP4; the frames are pictures, and
+        they differ (the fires flicker) but show the same scene. With `--meshes`, each frame's body and
+        robe as OBJ (`assert_performer_meshes`)."""
+        out = tmp_path / "noh"
+        kept = users_folder(out)
+        motion = relabelled_walk(out / "walk.bvh")
+        kept[motion] = motion.read_bytes()
+        proc = run("jaxrender", "noh", "--out", ".", "--motion", "walk.bvh", "--frames", "2", "--width", "64",
+                   "--height", "48", "--meshes", cwd=out)
+        assert "2 frames" in proc.stdout
+        assert_kept(kept)
+        assert not [p for p in out.iterdir() if p.name.startswith(".")]   # no staging folder left
+        frames = []
+        for i in range(2):
+            png = read_rgb(out / f"frame_{i:03d}.png")
+            exr = read_rgb(out / f"frame_{i:03d}.exr")
+            assert png.shape == exr.shape == (48, 64, 3)
+            assert_picture(png)
+            assert np.all(np.isfinite(exr)) and exr.min() >= 0.0 and exr.max() > 0.0
+            frames.append(exr)
+        change = np.abs(frames[1] - frames[0]).mean() / frames[0].mean()
+        assert 1e-4 < change < 0.5, change  # flicker, not a different scene (or a frozen one)
+        gif = skio.imread(out / "noh.gif")
+        assert gif.shape[0] == 2 and gif.shape[1:3] == (48, 64)
+        assert (out / "noh.mp4").read_bytes()[4:8] == b"ftyp"      # an MP4 (ISO media) file beside them
+        assert_performer_meshes(out / "meshes", frames=2)
 
 
 def read_obj(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -307,35 +308,36 @@ def test_fitting_relight_and_report(fitted, tmp_path):
 
 # --- jaxrender gallery --quick ------------------------------------------------------------------------------------
 
-def test_gallery_quick_end_to_end(tmp_path):
-    """The main job: `jaxrender gallery --quick`, every section rendered without error, every image the
-    page shows is on disk, readable and a picture, and the index links them all."""
-    out = tmp_path / "gallery"
-    kept = users_folder(out)   # an existing folder is used, its other files kept
-    proc = run("jaxrender", "gallery", "--quick", "--out", out)
-    assert "FAILED" not in proc.stdout
-    assert_kept(kept)
-    # not a terminal: no progress bars, one line per entry as it is written
-    assert "\r" not in proc.stderr and "it/s" not in proc.stderr and "section/s" not in proc.stderr, proc.stderr
-    result = json.loads((out / "gallery.json").read_text())
-    assert result["quick"] is True
-    assert set(result["sections"]) == set(SECTIONS)
-    page = (out / "index.html").read_text()
-    for name, section in result["sections"].items():
-        assert section["error"] is None, f"{name}: {section['error']}"
-        assert section["entries"], f"{name}: no entries"
-        for entry in section["entries"]:
-            assert entry["title"] and entry["images"], (name, entry)
-            assert f"[gallery] {name}: wrote {', '.join(entry['images'])} (" in proc.stdout, proc.stdout
-            for rel in entry["images"]:
-                assert rel.startswith(f"{name}/")
-                assert rel in page, f"index.html does not show {rel}"
-                path = out / rel
-                if path.suffix in (".png", ".exr"):
-                    image = read_rgb(path)
-                    assert image.ndim == 3 and min(image.shape[:2]) >= 8, (rel, image.shape)
-                    # the stage is lit by spot lights in the dark (measured 45 % black pixels), the fit's
-                    # chart has a white background (55 % white): clipped up to 80 %, never all
-                    assert_picture(image, min_std=0.01, max_clipped=0.8)
-                else:
-                    assert path.is_file() and path.stat().st_size > 0, rel
+class TestGallery:  # its own scope under --dist loadscope (conftest.py)
+    def test_gallery_quick_end_to_end(self, tmp_path):
+        """The main job: `jaxrender gallery --quick`, every section rendered without error, every image the
+        page shows is on disk, readable and a picture, and the index links them all."""
+        out = tmp_path / "gallery"
+        kept = users_folder(out)   # an existing folder is used, its other files kept
+        proc = run("jaxrender", "gallery", "--quick", "--out", out)
+        assert "FAILED" not in proc.stdout
+        assert_kept(kept)
+        # not a terminal: no progress bars, one line per entry as it is written
+        assert "\r" not in proc.stderr and "it/s" not in proc.stderr and "section/s" not in proc.stderr, proc.stderr
+        result = json.loads((out / "gallery.json").read_text())
+        assert result["quick"] is True
+        assert set(result["sections"]) == set(SECTIONS)
+        page = (out / "index.html").read_text()
+        for name, section in result["sections"].items():
+            assert section["error"] is None, f"{name}: {section['error']}"
+            assert section["entries"], f"{name}: no entries"
+            for entry in section["entries"]:
+                assert entry["title"] and entry["images"], (name, entry)
+                assert f"[gallery] {name}: wrote {', '.join(entry['images'])} (" in proc.stdout, proc.stdout
+                for rel in entry["images"]:
+                    assert rel.startswith(f"{name}/")
+                    assert rel in page, f"index.html does not show {rel}"
+                    path = out / rel
+                    if path.suffix in (".png", ".exr"):
+                        image = read_rgb(path)
+                        assert image.ndim == 3 and min(image.shape[:2]) >= 8, (rel, image.shape)
+                        # the stage is lit by spot lights in the dark (measured 45 % black pixels), the fit's
+                        # chart has a white background (55 % white): clipped up to 80 %, never all
+                        assert_picture(image, min_std=0.01, max_clipped=0.8)
+                    else:
+                        assert path.is_file() and path.stat().st_size > 0, rel
