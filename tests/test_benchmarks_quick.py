@@ -53,38 +53,36 @@ def check_script(script: Path, tmp_path: Path) -> None:
     assert run_all.check_results(rows_dir) == []  # it loads, has complete rows, and the table builds from them
 
 
-def _ids(p: Path) -> str:
-    return p.stem
+def pytest_generate_tests(metafunc):
+    if "script" in metafunc.fixturenames:  # each area class runs its own scripts
+        metafunc.parametrize("script", scripts_of(metafunc.cls.AREA), ids=lambda p: p.stem)
 
 
-class TestNohScripts:
-    @pytest.mark.parametrize("script", scripts_of("noh"), ids=_ids)
+class _AreaScripts:
+    AREA = ""
+
     def test_benchmark_script_runs_quick(self, script, tmp_path):
         check_script(script, tmp_path)
 
 
-class TestShaftsScripts:
-    @pytest.mark.parametrize("script", scripts_of("shafts"), ids=_ids)
-    def test_benchmark_script_runs_quick(self, script, tmp_path):
-        check_script(script, tmp_path)
+class TestNohScripts(_AreaScripts):
+    AREA = "noh"
 
 
-class TestFittingScripts:
-    @pytest.mark.parametrize("script", scripts_of("fitting"), ids=_ids)
-    def test_benchmark_script_runs_quick(self, script, tmp_path):
-        check_script(script, tmp_path)
+class TestShaftsScripts(_AreaScripts):
+    AREA = "shafts"
 
 
-class TestDesertScripts:
-    @pytest.mark.parametrize("script", scripts_of("desert"), ids=_ids)
-    def test_benchmark_script_runs_quick(self, script, tmp_path):
-        check_script(script, tmp_path)
+class TestFittingScripts(_AreaScripts):
+    AREA = "fitting"
 
 
-class TestOtherScripts:
-    @pytest.mark.parametrize("script", scripts_of("other"), ids=_ids)
-    def test_benchmark_script_runs_quick(self, script, tmp_path):
-        check_script(script, tmp_path)
+class TestDesertScripts(_AreaScripts):
+    AREA = "desert"
+
+
+class TestOtherScripts(_AreaScripts):
+    AREA = "other"
 
 
 def test_run_all_quick_runs_the_scripts_asked_for(tmp_path):
