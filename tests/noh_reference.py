@@ -780,10 +780,13 @@ FLOAT32_CHILD = textwrap.dedent("""
 """)
 
 
+def _is_float(leaf) -> bool:
+    return isinstance(leaf, jax.Array) and jnp.issubdtype(leaf.dtype, jnp.floating)
+
+
 def float_leaves(scene) -> list:
     """The scene's floating-point arrays, in tree order."""
-    return [leaf for leaf in jax.tree_util.tree_leaves(scene)
-            if isinstance(leaf, jax.Array) and jnp.issubdtype(leaf.dtype, jnp.floating)]
+    return [leaf for leaf in jax.tree_util.tree_leaves(scene) if _is_float(leaf)]
 
 
 def with_float_leaves(scene, leaves: list):
@@ -791,11 +794,11 @@ def with_float_leaves(scene, leaves: list):
     the float32 child's scene in the parent's precision. A seed draws different procedural
     materials in float32 and float64 (`jax.random` draws per dtype), so the reference of a float32
     frame must shade the scene that frame was rendered from."""
-    values = iter(leaves)
     flat, tree = jax.tree_util.tree_flatten(scene)
-    flat = [jnp.asarray(next(values), leaf.dtype)
-            if isinstance(leaf, jax.Array) and jnp.issubdtype(leaf.dtype, jnp.floating) else leaf
-            for leaf in flat]
+    if len(leaves) != sum(map(_is_float, flat)):
+        raise ValueError(f"{len(leaves)} arrays for a scene of {sum(map(_is_float, flat))}")
+    values = iter(leaves)
+    flat = [jnp.asarray(next(values), leaf.dtype) if _is_float(leaf) else leaf for leaf in flat]
     return jax.tree_util.tree_unflatten(tree, flat)
 
 
