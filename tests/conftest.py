@@ -61,7 +61,7 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(autouse=True, scope="module")
 def _drop_compiled_programs():
     """After each module its compiled programs are dropped, so that a worker's memory does not grow
-    with the suite (it had reached 6 GB per worker two thirds in); a later module that needs one again
+    with the suite (without it, 6-7 GB per worker two thirds in); a later module that needs one again
     loads it from the persistent cache."""
     yield
     jax.clear_caches()
