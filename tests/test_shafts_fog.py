@@ -105,6 +105,72 @@ def test_grid_lookup_matches_mitsuba_gridvolume():
     assert float(grid.at(jnp.asarray([hi + 1e-6]))[0]) == 0.0 and float(grid.at(jnp.asarray([lo - 1e-6]))[0]) == 0.0
 
 
+_LOOKUP_FD_RTOL = 1e-6  # float64 central differences of a piecewise-trilinear lookup (h = 1e-6), away from kinks
+
+
+def _central(f, x, h=1e-6):
+    """Elementwise central differences of f (outputs independent per element of x)."""
+    return (np.asarray(f(x + h)) - np.asarray(f(x - h))) / (2 * h)
+
+
+def test_lookup_gradients_match_central_differences():
+    """The lookups' own reverse passes (one scatter of all corners into the table, the fractions'
+    slopes to the coordinates): the grid's d(P) by its values, box and the points' coordinates,
+    and a depth volume's tau by its table and frustum coordinates, against float64 central
+    differences at random points inside the box, in its clamped margin and outside it."""
+    from jaxrender.shafts import DepthVolume
+
+    grid = _grid()
+    lo, hi = np.asarray(grid.box_min), np.asarray(grid.box_max)
+    pts = lo - 0.1 * (hi - lo) + np.random.default_rng(4).uniform(0, 1.2, (300, 3)) * (hi - lo)
+    w = np.random.default_rng(5).uniform(0.5, 1.5, 300)
+
+    def loss(values, box_min, box_max, points):
+        return jnp.sum(w * DensityGrid(values, box_min, box_max).at(points))
+
+    grads = jax.grad(loss, argnums=(0, 1, 2, 3))(grid.values, grid.box_min, grid.box_max, jnp.asarray(pts))
+    args = [np.asarray(grid.values), lo, hi]
+    for k in range(3):
+        fd = np.zeros_like(args[k])
+        for idx in np.ndindex(fd.shape):
+            def at(v, k=k, idx=idx):
+                moved = [a.copy() for a in args]
+                moved[k][idx] = v
+                return float(loss(*moved, pts))
+            fd[idx] = (at(args[k][idx] + 1e-6) - at(args[k][idx] - 1e-6)) / 2e-6
+        np.testing.assert_allclose(np.asarray(grads[k]), fd, rtol=_LOOKUP_FD_RTOL, atol=1e-9, err_msg=str(k))
+    for axis in range(3):
+        def at(c, axis=axis):
+            moved = np.concatenate([pts[:, :axis], c[:, None], pts[:, axis + 1:]], 1)
+            return w * np.asarray(grid.at(jnp.asarray(moved)))
+        np.testing.assert_allclose(np.asarray(grads[3])[:, axis], _central(at, pts[:, axis]), rtol=_LOOKUP_FD_RTOL,
+                                   atol=1e-9, err_msg=f"point axis {axis}")
+    assert np.count_nonzero(np.asarray(grads[3])) > 300  # the points inside move the lookup
+
+    rng = np.random.default_rng(6)
+    table = rng.uniform(0.0, 2.0, (4, 5, 6))
+    abs_ = [rng.uniform(-1.1, 1.1, 200), rng.uniform(-1.1, 1.1, 200), rng.uniform(0.5, 3.5, 200)]
+
+    def tau(table, a, b, s):
+        vol = DepthVolume(table=table, origin=jnp.zeros(3), rotation=jnp.eye(3), tan_x=jnp.asarray(0.5),
+                          tan_y=jnp.asarray(0.4), s_lo=jnp.asarray(1.0), s_hi=jnp.asarray(3.0))
+        return vol.lookup(a, b, s)
+
+    g_table, *g_abs = jax.grad(lambda *x: jnp.sum(tau(*x)), argnums=(0, 1, 2, 3))(table, *abs_)
+    fd = np.zeros_like(table)
+    for idx in np.ndindex(table.shape):
+        plus, minus = table.copy(), table.copy()
+        plus[idx] += 1e-6
+        minus[idx] -= 1e-6
+        fd[idx] = float(jnp.sum(tau(plus, *abs_)) - jnp.sum(tau(minus, *abs_))) / 2e-6
+    np.testing.assert_allclose(np.asarray(g_table), fd, rtol=_LOOKUP_FD_RTOL, atol=1e-9)
+    for k in range(3):
+        def at(c, k=k):
+            return tau(table, *[c if j == k else abs_[j] for j in range(3)])
+        np.testing.assert_allclose(np.asarray(g_abs[k]), _central(at, abs_[k]), rtol=_LOOKUP_FD_RTOL, atol=1e-9,
+                                   err_msg=f"frustum coordinate {k}")
+
+
 def _numpy_density(values, lo, hi, pts):
     """Trilinear at voxel centres, clamped, 0 outside: scipy's map_coordinates (order 1, nearest)."""
     n = np.array(values.shape[::-1], float)  # (nx, ny, nz)

@@ -34,41 +34,96 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ..fusion import materialize
 from ..maths import safe_norm
 
-__all__ = ["DensityGrid", "DepthVolume", "depth_volume", "segment_optical_depth", "box_interval", "blend",
-           "trilinear"]
+__all__ = ["DensityGrid", "DepthVolume", "depth_volume", "segment_optical_depth", "box_interval",
+           "corner_lookup", "trilinear"]
 
 _GAUSS = 0.5 / np.sqrt(3.0)  # two-point Gauss-Legendre nodes at 1/2 -+ this on [0, 1]
 
 
-@jax.custom_vjp
-def blend(flat: Array, index: list[Array], weight: list[Array]) -> Array:
-    """sum_c weight[c] * flat[index[c]]: the corners of a trilinear lookup, one scalar gather each
-    (XLA's CPU backend runs eight flat gathers ~1.5x faster than one gather of 8-vectors). The
-    reverse pass adds into `flat` with ONE scatter of all corners (eight, one per corner, made the
-    gradient of a frame compile several times longer)."""
-    return functools.reduce(jnp.add, [w * flat[i] for i, w in zip(index, weight)])
+def _corner_values(flat: Array, strides: tuple[int, int, int], axes) -> dict:
+    """flat[i_a * strides[0] + i_b * strides[1] + i_c * strides[2]] at the 8 corners (a, b, c) in
+    {0, 1}^3 of lookups whose axes are (i0, i1, f) triples (major to minor): one scalar gather each
+    (XLA's CPU backend runs eight flat gathers ~1.5x faster than one gather of 8-vectors)."""
+    (a0, a1, _), (b0, b1, _), (c0, c1, _) = axes
+    sa, sb, sc = strides
+    out = {}
+    for i, ai in enumerate((a0, a1)):
+        for j, bj in enumerate((b0, b1)):
+            row = ai * sa + bj * sb
+            for k, ck in enumerate((c0, c1)):
+                out[i, j, k] = flat[row + ck * sc]
+    return out
 
 
-def _blend_fwd(flat, index, weight):
-    return blend(flat, index, weight), (flat, index, weight)
+def _corner_scatter(size: int, strides: tuple[int, int, int], axes, g: Array) -> Array:
+    """The reverse of `corner_lookup` in the table: zeros(size) plus g times each corner's weight
+    added at each of its 8 corners, in ONE scatter (eight, one per corner, made the gradient of a
+    frame compile several times longer). Built inside `materialize` from the per-axis indices and
+    fractions, which are stored once: the corners' index and update arrays are one concatenate,
+    and XLA's CPU emitter shares no work between a concatenate's operands, so built from the
+    lookup's coordinates each of the 16 would recompute their whole chain from the rays (the
+    gradient of a grid-fog frame spent most of its time there)."""
+
+    def scatter(axes, g):
+        (a0, a1, fa), (b0, b1, fb), (c0, c1, fc) = axes
+        sa, sb, sc = strides
+        index, update = [], []
+        for ai, wa in ((a0, 1.0 - fa), (a1, fa)):
+            for bj, wb in ((b0, 1.0 - fb), (b1, fb)):
+                row, gw = ai * sa + bj * sb, g * wa * wb
+                for ck, wc in ((c0, 1.0 - fc), (c1, fc)):
+                    index.append((row + ck * sc).reshape(-1))
+                    update.append((gw * wc).reshape(-1))
+        return jnp.zeros((size,), g.dtype).at[jnp.concatenate(index)].add(jnp.concatenate(update))
+
+    return materialize(scatter, axes, g)
 
 
-def _blend_bwd(res, g):
-    flat, index, weight = res
-    idx = jnp.concatenate([i.reshape(-1) for i in index])
-    upd = jnp.concatenate([(w * g).reshape(-1) for w in weight])
-    d_flat = jnp.zeros_like(flat).at[idx].add(upd)
-    return d_flat, None, [g * flat[i] for i in index]
+@functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
+def corner_lookup(flat: Array, strides: tuple[int, int, int], axes) -> Array:
+    """Trilinear interpolation in a flattened 3-D table: sum over the 8 corners of
+    w_a w_b w_c flat[i_a strides[0] + i_b strides[1] + i_c strides[2]], with w = 1 - f at i0 and f
+    at i1; `axes` three (i0, i1, f) triples of equal shape, major to minor. Differentiable in the
+    table and in the fractions f (hence in whatever coordinates they come from); its reverse pass
+    keeps only the nine per-axis arrays (autodiff kept eight index and eight weight arrays a
+    lookup, and XLA's CPU backend recomputed each one's whole chain from the rays)."""
+    (_, _, fa), (_, _, fb), (_, _, fc) = axes
+    v = _corner_values(flat, strides, axes)
+    out = 0.0
+    for i, wa in ((0, 1.0 - fa), (1, fa)):
+        for j, wb in ((0, 1.0 - fb), (1, fb)):
+            out = out + wa * wb * ((1.0 - fc) * v[i, j, 0] + fc * v[i, j, 1])
+    return out
 
 
-blend.defvjp(_blend_fwd, _blend_bwd)
+def _corner_lookup_fwd(flat, strides, axes):
+    return corner_lookup(flat, strides, axes), (flat, axes)
+
+
+def _corner_lookup_bwd(strides, res, g):
+    flat, axes = res
+    (_, _, fa), (_, _, fb), (_, _, fc) = axes
+    v = _corner_values(flat, strides, axes)
+    along_c = {(i, j): (1.0 - fc) * v[i, j, 0] + fc * v[i, j, 1] for i in (0, 1) for j in (0, 1)}
+    along_b = {i: (1.0 - fb) * along_c[i, 0] + fb * along_c[i, 1] for i in (0, 1)}
+    d_fc = sum(wa * wb * (v[i, j, 1] - v[i, j, 0])
+               for i, wa in ((0, 1.0 - fa), (1, fa)) for j, wb in ((0, 1.0 - fb), (1, fb)))
+    d_fb = (1.0 - fa) * (along_c[0, 1] - along_c[0, 0]) + fa * (along_c[1, 1] - along_c[1, 0])
+    d_fa = along_b[1] - along_b[0]
+    d_flat = _corner_scatter(flat.shape[0], strides, axes, g)
+    return d_flat, tuple((None, None, g * d) for d in (d_fa, d_fb, d_fc))
+
+
+corner_lookup.defvjp(_corner_lookup_fwd, _corner_lookup_bwd)
 
 
 def _axis_weights(c: Array, lo: Array, hi: Array, n: int):
     """(i0, i1, f, inside) of trilinear interpolation along one axis at coordinate c, voxel
-    centres at lo + (i + 1/2)/n (hi - lo), clamped to the first and last centre."""
+    centres at lo + (i + 1/2)/n (hi - lo), clamped to the first and last centre (f's gradient
+    is 0 where clamped)."""
     g = (c - lo) * (n / (hi - lo)) - 0.5
     g = jnp.clip(g, 0.0, n - 1.0)
     i0 = jnp.clip(jnp.floor(jax.lax.stop_gradient(g)).astype(jnp.int32), 0, max(n - 2, 0))
@@ -77,77 +132,15 @@ def _axis_weights(c: Array, lo: Array, hi: Array, n: int):
     return i0, i1, f, (c >= lo) & (c <= hi)
 
 
-def _axis_parts(c: Array, lo: Array, hi: Array, n: int):
-    """`_axis_weights` plus dg/dc where the clamp is not active (g's slope, 0 where clamped)."""
-    scale = n / (hi - lo)
-    g_raw = (c - lo) * scale - 0.5
-    i0, i1, f, inside = _axis_weights(c, lo, hi, n)
-    free = (g_raw > 0.0) & (g_raw < n - 1.0)
-    return i0, i1, f, inside, jnp.where(free, scale, 0.0)
-
-
-def _corner_terms(values, lo, hi, x, y, z):
-    nz, ny, nx = values.shape
-    ax = _axis_parts(x, lo[0], hi[0], nx)
-    ay = _axis_parts(y, lo[1], hi[1], ny)
-    az = _axis_parts(z, lo[2], hi[2], nz)
-    return ax, ay, az, ax[3] & ay[3] & az[3]
-
-
-@jax.custom_vjp
 def trilinear(values: Array, lo: Array, hi: Array, x: Array, y: Array, z: Array) -> Array:
     """d at points (x, y, z) of equal shape: trilinear between voxel centres, clamped to the
-    outermost ones, 0 outside the box (the module docstring's grid). Its reverse pass is written
-    out from the positions alone: the eight corners' indices and weights are a few flops from
-    them, where autodiff's residuals (eight index and eight weight arrays a lookup, per lookup of
-    a frame) made XLA's CPU backend recompute each corner's whole chain from the rays."""
+    outermost ones, 0 outside the box (the module docstring's grid)."""
     nz, ny, nx = values.shape
-    (x0, x1, fx, _, _), (y0, y1, fy, _, _), (z0, z1, fz, _, _), inside = _corner_terms(values, lo, hi, x, y, z)
-    flat = values.reshape((-1,))
-    out = 0.0
-    for zi, wz in ((z0, 1.0 - fz), (z1, fz)):
-        for yi, wy in ((y0, 1.0 - fy), (y1, fy)):
-            row = (zi * ny + yi) * nx
-            out = out + wz * wy * ((1.0 - fx) * flat[row + x0] + fx * flat[row + x1])
-    return jnp.where(inside, out, 0.0)
-
-
-def _trilinear_fwd(values, lo, hi, x, y, z):
-    return trilinear(values, lo, hi, x, y, z), (values, lo, hi, x, y, z)
-
-
-def _trilinear_bwd(res, g):
-    values, lo, hi, x, y, z = res
-    nz, ny, nx = values.shape
-    (x0, x1, fx, _, sx), (y0, y1, fy, _, sy), (z0, z1, fz, _, sz), inside = _corner_terms(values, lo, hi, x, y, z)
-    g = jnp.where(inside, g, 0.0)
-    flat = values.reshape((-1,))
-    index, weight = [], []
-    d_fx = d_fy = d_fz = 0.0
-    for zi, wz, dz in ((z0, 1.0 - fz, -1.0), (z1, fz, 1.0)):
-        for yi, wy, dy in ((y0, 1.0 - fy, -1.0), (y1, fy, 1.0)):
-            row = (zi * ny + yi) * nx
-            v0, v1 = flat[row + x0], flat[row + x1]
-            index += [row + x0, row + x1]
-            weight += [wz * wy * (1.0 - fx), wz * wy * fx]
-            along_x = (1.0 - fx) * v0 + fx * v1
-            d_fx = d_fx + wz * wy * (v1 - v0)
-            d_fy = d_fy + dy * wz * along_x
-            d_fz = d_fz + dz * wy * along_x
-    d_values = jnp.zeros_like(flat).at[jnp.concatenate([i.reshape(-1) for i in index])].add(
-        jnp.concatenate([(w * g).reshape(-1) for w in weight])).reshape(values.shape)
-    d_gx, d_gy, d_gz = g * d_fx * sx, g * d_fy * sy, g * d_fz * sz  # d out / d coordinate
-    # g = (c - lo) n / (hi - lo) - 1/2: dg/dlo = (c - hi) n / (hi - lo)^2 = (c - hi) / (hi - lo) dg/dc, dg/dhi
-    # = -(c - lo) / (hi - lo) dg/dc
-    d_lo, d_hi = [], []
-    for a, (c, d_c) in enumerate(((x, d_gx), (y, d_gy), (z, d_gz))):
-        span = hi[a] - lo[a]
-        d_lo.append(jnp.sum(d_c * (c - hi[a])) / span)
-        d_hi.append(-jnp.sum(d_c * (c - lo[a])) / span)
-    return d_values, jnp.stack(d_lo), jnp.stack(d_hi), d_gx, d_gy, d_gz
-
-
-trilinear.defvjp(_trilinear_fwd, _trilinear_bwd)
+    *ax, in_x = _axis_weights(x, lo[0], hi[0], nx)
+    *ay, in_y = _axis_weights(y, lo[1], hi[1], ny)
+    *az, in_z = _axis_weights(z, lo[2], hi[2], nz)
+    out = corner_lookup(values.reshape((-1,)), (ny * nx, nx, 1), (tuple(az), tuple(ay), tuple(ax)))
+    return jnp.where(in_x & in_y & in_z, out, 0.0)
 
 
 class DensityGrid(eqx.Module):
@@ -269,18 +262,11 @@ class DepthVolume(eqx.Module):
         def axis(c, n):
             g = jnp.clip(c, 0.0, n - 1.0)
             i0 = jnp.clip(jnp.floor(jax.lax.stop_gradient(g)).astype(jnp.int32), 0, n - 2)
-            return i0, g - i0.astype(g.dtype)
+            return i0, i0 + 1, g - i0.astype(g.dtype)
 
-        u0, fu = axis((a + 1.0) * (0.5 * (nu - 1)), nu)
-        v0, fv = axis((b + 1.0) * (0.5 * (nv - 1)), nv)
-        k0, fk = axis((s - self.s_lo) * ((ns - 1) / (self.s_hi - self.s_lo)), ns)
-        index, weight = [], []
-        for vi, wv in ((v0, 1.0 - fv), (v0 + 1, fv)):
-            for ui, wu in ((u0, 1.0 - fu), (u0 + 1, fu)):
-                base = (vi * nu + ui) * ns + k0
-                index += [base, base + 1]
-                weight += [wv * wu * (1.0 - fk), wv * wu * fk]
-        return blend(flat, index, weight)
+        return corner_lookup(flat, (nu * ns, ns, 1), (axis((b + 1.0) * (0.5 * (nv - 1)), nv),
+                                                      axis((a + 1.0) * (0.5 * (nu - 1)), nu),
+                                                      axis((s - self.s_lo) * ((ns - 1) / (self.s_hi - self.s_lo)), ns)))
 
     def lookup_points(self, points: Float[ArrayLike, "*B 3"]) -> Float[Array, "*B"]:
         """tau from the origin to world points (in front of the origin)."""
