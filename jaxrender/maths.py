@@ -76,8 +76,15 @@ def sum_last(a: ArrayLike) -> Array:
     """Sum over the last axis by halving it (x[:n/2] + x[n/2:]) while its length is even, then
     adding the rest slice by slice: elementwise adds XLA fuses with their producer into one loop.
     A reduction there may become a YNNPACK fusion on XLA's CPU backend, which ran the light-shaft
-    sample loop (24-48 samples a ray, the samples' whole computation fused in) 3-7x slower."""
+    sample loop (24-48 samples a ray, the samples' whole computation fused in) 3-7x slower. From 32
+    on, a product with a vector of ones instead: there XLA fused the samples' whole computation into
+    the first halving (each output element computing two samples 16 apart), 15x slower per sample
+    than the stored (rays, samples) array the product reads (720 x 480 adaptive spot frames on an
+    Intel Xeon: 0.35 s at 32 samples and 0.53 s at 48 that way, 0.11 and 0.12 s with the product,
+    0.10 s at 24)."""
     a = jnp.asarray(a)
+    if a.shape[-1] >= 32:
+        return a @ jnp.ones((a.shape[-1],), a.dtype)
     while a.shape[-1] > 1 and a.shape[-1] % 2 == 0:
         half = a.shape[-1] // 2
         a = a[..., :half] + a[..., half:]
