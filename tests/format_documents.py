@@ -139,7 +139,8 @@ def scene_documents(draw, *, renderable: bool = False) -> Document:
         files["fog.npy"] = lambda folder, g=grid: np.save(folder / "fog.npy", g)
         medium["density"] = {"grid": "fog.npy", "box_min": lo, "box_max": hi}
     # the coefficients the renderer forms are float32 numbers too (docs/formats.md)
-    assume(medium["rho"] * medium["kappa"] * peak <= F32 and 10 * medium["rho"] * medium["K"] * peak <= F32)
+    assume(medium["rho"] * medium["kappa"] * peak <= F32 and 10 * medium["rho"] * medium["K"] * peak <= F32
+           and 10 * medium["K"] * max(peak, 1.0) <= F32)
     doc = {"camera": camera, "medium": medium}
     if draw(st.booleans()):   # render: optional, and each of its fields
         render = {}
@@ -223,6 +224,7 @@ SCENE_BREAKS = {   # one forbidden change each: (what, how)
     "negative rho": lambda d: d["medium"].update(rho=-1),
     "rho beyond float32": lambda d: d["medium"].update(rho=1e39),
     "extinction beyond float32": lambda d: d["medium"].update(rho=1e20, kappa=1e20),
+    "phase function beyond float32": lambda d: d["medium"].update(rho=1e-40, K=1e38),
     "rho NaN": lambda d: d["medium"].update(rho=float("nan")),
     "unknown medium field": lambda d: d["medium"].update(sigma=1),
     "cutoff 90": lambda d: d["spotlights"][0].update(cutoff_deg=90),

@@ -175,7 +175,10 @@ def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], eye: Fl
     c2 = 0.5 * (1.0 - s)
     c4 = c2 * c2
     c8 = c4 * c4
-    phase = K * (1.0 + 9.0 * c8 * c8)
+    # rho multiplies in here, not after the sum over the samples: with a K near float32's limit and
+    # a rho that rounds to 0 the sum overflows and inf x 0 is NaN; rho K is a float32 number (checked
+    # where a scene file is read)
+    phase = (rho * K) * (1.0 + 9.0 * c8 * c8)
     if fog is None:
         path = t_p[..., None] + h[..., None] * (1.0 + s) / c  # s + t
         weight = jnp.where(lit, fall * phase * jnp.exp(-rho * kappa * path), 0.0)
@@ -200,7 +203,7 @@ def equiangular_scattering(light: SpotLight, depth: Float[Array, "R R"], eye: Fl
         ends = _view_depth_along(fog.view, eye, jnp.stack([dirs, dirs]), jnp.stack([e0, e1]))  # one lookup
         tau_v = _anchored_view_depth(dens, left, right, t_s, e0, e1, ends[0], ends[1])
         weight = jnp.where(lit, fall * phase * dens * jnp.exp(-rho * kappa * (tau_l + tau_v)), 0.0)
-    scale = rho * step / h
+    scale = step / h
     mips = light.mips
     if mips is None:
         return outer(sum_last(weight) * scale, light.intensity)

@@ -148,10 +148,11 @@ def _medium(f: Fields, base_dir: Path) -> Medium | None:
     density = _density(f.section("density"), base_dir) if has_density else None
     if None in (rho, kappa, K) or (has_density and density is None):
         return None
-    # the coefficients the renderer forms (extinction rho kappa d, the phase function's peak 10 rho K d)
-    # must be float32 numbers too
+    # the coefficients the renderer forms (extinction rho kappa d, the phase function's peak 10 rho K d,
+    # and 10 K d, which the kernels form before rho multiplies in) must be float32 numbers too
     peak = 1.0 if density is None else float(np.max(density.values))
-    for name, value in (("rho * kappa", rho * kappa * peak), ("10 * rho * K", 10 * rho * K * peak)):
+    for name, value in (("rho * kappa", rho * kappa * peak), ("10 * rho * K", 10 * rho * K * peak),
+                        ("10 * K", 10 * K * max(peak, 1.0))):
         if value > FLOAT32_MAX:
             f.problem(None, f"{name}{' * the largest density' if density is not None else ''} = {value:.4g} is "
                             f"beyond float32's range (|x| <= {FLOAT32_MAX:.4g}), in which the toolkit computes")
