@@ -23,7 +23,7 @@ from .skeleton import SkeletonMotion
 
 __all__ = ["JOINT_NAMES", "BodyVolumes", "Costume", "performer_joints", "body_volumes", "dress_performer",
            "advance_costume", "costume_frames", "fixed_positions", "volume_penetration", "costume_normals",
-           "COSTUME_LAYOUT", "body_scale"]
+           "COSTUME_LAYOUT", "body_scale", "fit_shoulders", "ROBE_MARGIN"]
 
 # role -> accepted joint names (Bandai Namco, CMU, Mixamo without its "mixamorig:" prefix)
 JOINT_NAMES = {
@@ -49,6 +49,7 @@ _OPTIONAL = {"shoulder_L", "shoulder_R", "toes_L", "toes_R"}
 COSTUME_LAYOUT = {"body": (0.0, 0.0, 0.5, 0.62), "sleeve_L": (0.52, 0.0, 0.46, 0.3),
                   "sleeve_R": (0.52, 0.32, 0.46, 0.3)}
 COLLAR_ROWS = 2     # the body's top rows: the collar band (fixed to the chest)
+ROBE_MARGIN = 0.012  # m: how far outside the body's volumes the robe's vertices are kept
 
 
 def performer_joints(names: tuple[str, ...], *, source: str | None = None) -> dict[str, int]:
@@ -114,6 +115,17 @@ def body_volumes(motion: SkeletonMotion, joints: dict[str, int]) -> BodyVolumes:
     add("chest", joint_end(joints["chest"]), joint_end(joints["neck"]), 0.10)
     add("neck", joint_end(joints["neck"]), joint_end(joints["head"]), 0.05)
     add("head", joint_end(joints["head"]), beyond(joints["head"], joints["neck"], 0.11 * s), 0.09)
+    # the face: around the Noh mask that the performer's rig binds at this capsule's middle (its
+    # nose 7.7 cm before it, its rim inside the head's volume), so that the robe stays off the mask
+    head = joints["head"]
+    up = p0[head] - p0[joints["neck"]]
+    up /= max(np.linalg.norm(up), 1e-9)
+    forward = np.cross(p0[joints["upper_leg_L"]] - p0[joints["upper_leg_R"]], up)
+    forward /= max(np.linalg.norm(forward), 1e-9)
+    # the head's middle, 12 mm down and 3.5 cm inside its front
+    face = p0[head] + (0.055 - 0.012) * s * up + (0.09 - 0.035) * s * forward
+    at_head = lambda point: (head, r0[head].T @ (point - p0[head]))  # noqa: E731
+    add("face", at_head(face - 0.05 * s * up), at_head(face + 0.05 * s * up), 0.08)
     add("shoulders", joint_end(joints["upper_arm_L"]), joint_end(joints["upper_arm_R"]), 0.05)
     add("hip_bar", joint_end(joints["upper_leg_L"]), joint_end(joints["upper_leg_R"]), 0.085)
     for side in ("L", "R"):
@@ -137,6 +149,42 @@ def body_volumes(motion: SkeletonMotion, joints: dict[str, int]) -> BodyVolumes:
     return BodyVolumes(jnp.asarray([r[1][0] for r in rows], jnp.int32), jnp.asarray([r[1][1] for r in rows], dtype),
                        jnp.asarray([r[2][0] for r in rows], jnp.int32), jnp.asarray([r[2][1] for r in rows], dtype),
                        jnp.asarray([r[3] for r in rows], dtype), tuple(r[0] for r in rows))
+
+
+def fit_shoulders(motion: SkeletonMotion, joints: dict[str, int], parents: tuple[int, ...]) -> SkeletonMotion:
+    """The motion with each arm moved out to the body's shoulder width: where a skeleton's
+    shoulder joint lies closer to the chest's centre line at frame 0 than the chest's and the
+    upper arm's radii plus room for the robe between them (2 x `ROBE_MARGIN`), that arm's joints
+    (the upper arm and everything below it in `parents`) are shifted outwards, away from the
+    chest's centre line, by the difference at every frame; rotations are kept. A narrow-shouldered
+    capture (dance-short_normal_001.bvh: 10 cm from the centre line where the volumes need 16 cm)
+    would otherwise hang its upper arms 5 cm inside the chest's volume, leaving the sleeve no
+    room between them (docs/noh.md, "The costume"). A skeleton as wide as its volumes is
+    returned unchanged."""
+    volumes = body_volumes(motion, joints)
+    radius = dict(zip(volumes.names, np.asarray(volumes.radius, np.float64)))
+    p = np.asarray(motion.positions, np.float64)
+    axis = p[:, joints["neck"]] - p[:, joints["chest"]]
+    axis /= np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-12)
+    left = p[:, joints["upper_leg_L"]] - p[:, joints["upper_leg_R"]]    # the fallback on the centre line
+    shifted = p.copy()
+    for side, sign in (("L", 1.0), ("R", -1.0)):
+        arm = [joints[f"upper_arm_{side}"]]
+        for j in range(arm[0] + 1, len(parents)):                       # parents come before children
+            if parents[j] in arm:
+                arm.append(j)
+        out = p[:, arm[0]] - p[:, joints["chest"]]
+        out -= np.sum(out * axis, -1, keepdims=True) * axis             # F 3: from the centre line
+        width = np.linalg.norm(out, axis=-1)
+        lack = radius["chest"] + radius[f"upper_arm_{side}"] + 2 * ROBE_MARGIN - width[0]
+        if lack <= 0:
+            continue
+        away = np.where(width[:, None] > 1e-6, out, sign * left)
+        away /= np.maximum(np.linalg.norm(away, axis=-1, keepdims=True), 1e-12)
+        shifted[:, arm] += lack * away[:, None]
+    if np.array_equal(shifted, p):
+        return motion
+    return SkeletonMotion(jnp.asarray(shifted, motion.positions.dtype), motion.rotations, motion.frame_time)
 
 
 def _forward(p0: np.ndarray, joints: dict[str, int]) -> np.ndarray:
@@ -336,7 +384,7 @@ def _assemble(pieces: list[_Piece]):
 def dress_performer(motion: SkeletonMotion, joints: dict[str, int], *, rows: int = 30, cols: int = 28,
                     sleeve_rows: int = 8, sleeve_cols: int = 16, mass: float = 2.4, k_structural: float = 1200.0,
                     k_shear: float = 250.0, k_bend: float = 25.0, k_seam: float = 1200.0, damping: float = 1.5,
-                    spring_damping: float = 0.01, margin: float = 0.012, dt: float = 5e-4,
+                    spring_damping: float = 0.01, margin: float = ROBE_MARGIN, dt: float = 5e-4,
                     settle_steps: int = 3000) -> Costume:
     """The robe made around the performer's pose at frame 0 (docs/noh.md, "The costume"):
     `rows` x `cols` body tube with side openings, two `sleeve_rows` x `sleeve_cols` sleeves seamed
@@ -420,7 +468,7 @@ def fixed_positions(costume: Costume, positions: Float[Array, "J 3"], rotations:
 def _push_out(x: Float[Array, "N 3"], a: Float[Array, "B 3"], b: Float[Array, "B 3"], radius: Float[Array, " B"]
               ) -> Float[Array, "N 3"]:
     """Each vertex moved to the surface of every capsule it is inside, one capsule after the
-    other (unrolled: ~25 fused elementwise updates run 2-3x faster than a scan or a vectorized
+    other (unrolled: ~24 fused elementwise updates run 2-3x faster than a scan or a vectorized
     deepest-capsule push on XLA's CPU backend; docs/noh.md)."""
     for k in range(a.shape[0]):
         ak, ab = a[k][None], (b[k] - a[k])[None]
@@ -472,13 +520,57 @@ def _push_edges_out(x: Float[Array, "N 3"], edges: Int[Array, "E 2"], inverse_ma
     return x + total / jnp.maximum(count, 1.0)[:, None]
 
 
+def _push_triangles_out(x: Float[Array, "N 3"], triangles: Int[Array, "T 3"], inverse_mass: Float[Array, " N"],
+                        a: Float[Array, "B 3"], b: Float[Array, "B 3"], radius: Float[Array, " B"]
+                        ) -> Float[Array, "N 3"]:
+    """Every triangle moved off the capsule ends that poke into it: where an end of a capsule's
+    axis lies within radius of a triangle's plane and projects inside the triangle, the triangle's
+    point there is carried to radius along the plane's normal, away from the end, by moving its
+    three corners in proportion to their barycentric share (and inverse mass), each vertex by the
+    mean of the moves its triangles ask. With its corners and edges outside (the pushes before
+    this one), a triangle larger than a capsule's section can still have a hand's or an elbow's
+    end through its middle. An axis that crosses the triangle is left to the edges."""
+    p0, p1, p2 = (x[triangles[:, k]] for k in range(3))
+    e1, e2 = p1 - p0, p2 - p0
+    normal = jnp.cross(e1, e2)
+    area2 = jnp.maximum(jnp.sum(normal * normal, -1), 1e-30)                     # T
+    n = normal / jnp.sqrt(area2)[:, None]
+    ha, hb = (jnp.einsum("tk,tbk->tb", n, e[None] - p0[:, None]) for e in (a, b))    # T B signed heights
+
+    def inside(point):                                                          # T B 3 -> T B
+        q = point - p0[:, None]
+        w1 = jnp.einsum("tbk,tk->tb", jnp.cross(q, e2[:, None]), n)
+        w2 = jnp.einsum("tbk,tk->tb", jnp.cross(e1[:, None], q), n)
+        bary = jnp.stack([1 - (w1 + w2) / root, w1 / root, w2 / root], -1)      # of its projection
+        return jnp.all(bary >= 0, axis=-1), bary
+
+    root = jnp.sqrt(area2)[:, None]
+    t = ha / jnp.where(ha == hb, 1.0, ha - hb)
+    pierced = (ha * hb < 0) & inside(a[None] + t[..., None] * (b - a)[None])[0]
+    free = jnp.stack([inverse_mass[triangles[:, k]] for k in range(3)], -1)[:, None]  # T 1 3
+    coef, hit = 0.0, False
+    for end, h in ((a, ha), (b, hb)):
+        within, bary = inside(jnp.broadcast_to(end[None], h.shape + (3,)))
+        depth = jnp.where(within & ~pierced, jnp.maximum(radius[None] - jnp.abs(h), 0.0), 0.0)   # T B
+        w = bary * free
+        scale = 1.0 / jnp.maximum(jnp.sum(bary * w, -1), 1.0 / 3.0)             # the point moves by depth
+        coef = coef + jnp.einsum("tbk,tb->tk", w, scale * -jnp.sign(h) * depth)  # T 3: each corner along n
+        hit = hit | jnp.any(depth > 0, axis=1)
+    corners = triangles.reshape(-1)
+    move = (coef[..., None] * n[:, None]).reshape(-1, 3)
+    active = (hit[:, None] & (free[:, 0] > 0)).reshape(-1).astype(x.dtype)
+    total = jax.ops.segment_sum(move, corners, num_segments=x.shape[0])
+    count = jax.ops.segment_sum(active, corners, num_segments=x.shape[0])
+    return x + total / jnp.maximum(count, 1.0)[:, None]
+
+
 def advance_costume(costume: Costume, state: ClothState, motion: SkeletonMotion, *, steps: int,
                     gravity: float = 9.81, passes: int = 2) -> ClothState:
     """Continue the robe's Verlet simulation from `state` for `steps` steps of `costume.dt`
     following `motion`: springs with dampers along them, air drag, gravity; after each step every
     free vertex is pushed out of the body's volumes (`passes` sweeps, to radius + margin), every
     edge too (`_push_edges_out`), and above the floor, and the fixed vertices are set on the
-    skeleton, pushed out of the arms' volumes. Jittable (`steps` static)."""
+    skeleton, pushed out of the volumes. Jittable (`steps` static)."""
     x0 = state.x
     dtype = x0.dtype
     dt = costume.dt
@@ -487,7 +579,6 @@ def advance_costume(costume: Costume, state: ClothState, motion: SkeletonMotion,
     keep = 1 - costume.damping * dt
     n = x0.shape[0]
     body = costume.body
-    arms = np.asarray([i for i, name in enumerate(body.names) if name.startswith(("upper_arm", "lower_arm", "hand"))])
 
     def step(carry, k):
         x, xp = carry
@@ -505,10 +596,12 @@ def advance_costume(costume: Costume, state: ClothState, motion: SkeletonMotion,
         for _ in range(passes):
             xn = _push_out(xn, a, b, body.radius + costume.margin)
         xn = _push_edges_out(xn, costume.edges, costume.inverse_mass, a, b, body.radius + costume.margin)
+        xn = _push_triangles_out(xn, costume.sim_triangles, costume.inverse_mass, a, b, body.radius + costume.margin)
         xn = xn.at[:, 1].set(jnp.maximum(xn[:, 1], costume.floor))
-        # the fixed vertices on the skeleton, pushed aside by an arm that swings into the collar or
-        # the chest ring (pinned, they would stay inside it)
-        fixed = _push_out(fixed_positions(costume, pos, rot), a[arms], b[arms], body.radius[arms] + costume.margin)
+        # the fixed vertices on the skeleton, pushed aside by a volume that moves into them (an arm
+        # swinging into the collar or the chest ring, the head bowed into the collar): pinned, they
+        # would stay inside it
+        fixed = _push_out(fixed_positions(costume, pos, rot), a, b, body.radius + costume.margin)
         xn = xn.at[costume.fixed_index].set(fixed)
         return (xn, x), None
 

@@ -13,7 +13,7 @@ import pytest
 
 from jaxrender.io import BVHMotion, read_bvh
 from sims import costume_frames, noh_dance, performer_joints, pose_motion
-from sims.costume import advance_costume, dress_performer
+from sims.costume import ROBE_MARGIN, advance_costume, body_volumes, dress_performer, fit_shoulders
 
 MOCAP = Path(os.environ.get("JAXRENDER_MOCAP", Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"))
 
@@ -101,3 +101,50 @@ def test_frames_continue_from_the_previous_state(dressed):
     restart = step(costume, type(one)(one.x, one.x, one.time), motion)
     assert float(jnp.abs(restart.x - two.x).max()) > 1e-5
     np.testing.assert_allclose(float(two.time), 120 * costume.dt, rtol=1e-12)
+
+
+def _centre_line_distance(p, joints, joint):
+    """Distance (F) of a joint from the chest's centre line (the chest-neck line) at every frame, float64."""
+    c, n, x = p[:, joints["chest"]], p[:, joints["neck"]], p[:, joint]
+    axis = (n - c) / np.linalg.norm(n - c, axis=-1, keepdims=True)
+    off = x - c
+    return np.linalg.norm(off - np.sum(off * axis, -1, keepdims=True) * axis, axis=-1)
+
+
+def test_arms_moved_out_to_the_body_shoulder_width():
+    """The captured skeleton's shoulders (10 cm from the chest's centre line) are moved out to the
+    chest's radius + the upper arm's + 2 x the robe's margin at frame 0, by one shift per frame for
+    each arm's joints: the arm's bones keep their vectors, the other joints and every rotation stay;
+    the built-in dance (as wide as its volumes) is returned as it is."""
+    bvh = _captured_stretch()
+    joints = performer_joints(bvh.names)
+    motion = pose_motion(bvh, scale=0.01)
+    fitted = fit_shoulders(motion, joints, bvh.parents)
+    p, q = np.asarray(motion.positions, np.float64), np.asarray(fitted.positions, np.float64)
+    radius = dict(zip(*(lambda v: (v.names, np.asarray(v.radius, np.float64)))(body_volumes(motion, joints))))
+    arm_joints = []
+    for side in ("L", "R"):
+        need = radius["chest"] + radius[f"upper_arm_{side}"] + 2 * ROBE_MARGIN
+        shoulder = joints[f"upper_arm_{side}"]
+        assert _centre_line_distance(p, joints, shoulder)[0] < need - 0.04          # the capture is narrow
+        np.testing.assert_allclose(_centre_line_distance(q, joints, shoulder)[0], need, atol=1e-5)
+        arm = [j for j in range(len(bvh.names)) if _below(bvh.parents, j, shoulder)]
+        assert {joints[f"lower_arm_{side}"], joints[f"hand_{side}"]} <= set(arm)
+        shift = q[:, arm] - p[:, arm]
+        np.testing.assert_allclose(shift, np.broadcast_to(shift[:, :1], shift.shape), atol=1e-6)  # rigidly
+        arm_joints += arm
+    rest = np.setdiff1d(np.arange(len(bvh.names)), arm_joints)
+    np.testing.assert_array_equal(q[:, rest], p[:, rest])
+    np.testing.assert_array_equal(np.asarray(fitted.rotations), np.asarray(motion.rotations))
+    built_in = noh_dance(duration=1.0)
+    wide = pose_motion(built_in, scale=0.01)
+    assert fit_shoulders(wide, performer_joints(built_in.names), built_in.parents) is wide
+
+
+def _below(parents, j, root):
+    """Whether joint j is `root` or below it."""
+    while j >= 0:
+        if j == root:
+            return True
+        j = parents[j]
+    return False

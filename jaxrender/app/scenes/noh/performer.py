@@ -137,8 +137,8 @@ def _mask_shape(rows: int = 24, cols: int = 18) -> tuple[np.ndarray, np.ndarray,
 
 
 def performer_rig(costume: Costume, motion: SkeletonMotion, joints: dict[str, int], scale: float) -> PerformerRig:
-    """Bind the mask to the head (in front of the head's volume at frame 0, facing the body's
-    forward direction) and give every capsule its body-page region."""
+    """Bind the mask to the head (its middle at the middle of the face's volume at frame 0,
+    facing the body's forward direction) and give every capsule its body-page region."""
     body = costume.body
     dtype = default_float()
     regions, shown = [], []
@@ -151,16 +151,15 @@ def performer_rig(costume: Costume, motion: SkeletonMotion, joints: dict[str, in
     p0 = np.asarray(motion.positions[0], np.float64)
     r0 = np.asarray(motion.rotations[0], np.float64)
     head = joints["head"]
-    k = body.names.index("head")
+    k = body.names.index("face")                        # along the head, around the mask
     a, b = (np.asarray(e[k], np.float64) for e in body.ends(motion.positions[0], motion.rotations[0]))
-    radius = float(body.radius[k])
     up = (b - a) / np.linalg.norm(b - a)
     left = p0[joints["upper_leg_L"]] - p0[joints["upper_leg_R"]]
     forward = np.cross(left, up)
     forward /= np.linalg.norm(forward)
     right = np.cross(up, forward)
     verts, st, tris = _mask_shape()
-    centre = 0.5 * (a + b) - 0.012 * scale * up + (radius - 0.035 * scale) * forward
+    centre = 0.5 * (a + b)
     world = centre + scale * (verts[:, :1] * -right + verts[:, 1:2] * up + verts[:, 2:3] * forward)
     local = (world - p0[head]) @ r0[head]            # R^T (p - joint), row vectors
     return PerformerRig(costume, motion, jnp.asarray(shown, jnp.int32), jnp.asarray(capsule_uv, dtype), head,

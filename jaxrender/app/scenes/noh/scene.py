@@ -20,7 +20,7 @@ from jaxrender.io import BVHMotion, InputError
 from jaxrender.lights import EnvMap, QuadLights
 from jaxrender.maths import default_float
 from sims import SkeletonMotion, fire_frames, noh_dance, place_motion, pose_motion
-from sims.costume import body_scale, body_volumes, dress_performer, performer_joints
+from sims.costume import body_scale, body_volumes, dress_performer, fit_shoulders, performer_joints
 
 from .environment import default_environment
 from .mask import LABELS, default_mask, mask_from_rgb
@@ -60,9 +60,10 @@ def motion_units(bvh: BVHMotion, *, source=None) -> float:
 
 def stage_motion(bvh: BVHMotion, *, duration: float, source=None) -> tuple[SkeletonMotion, dict[str, int]]:
     """The motion in metres, turned to face the audience at its first frame, its path over
-    `duration` seconds centred on `STAGE_SPOT`, its lowest foot on the floor at frame 0."""
+    `duration` seconds centred on `STAGE_SPOT`, its lowest foot on the floor at frame 0, its arms
+    moved out to the body's shoulder width (`sims.costume.fit_shoulders`)."""
     joints = performer_joints(bvh.names, source=source)
-    motion = pose_motion(bvh, scale=motion_units(bvh, source=source))
+    motion = fit_shoulders(pose_motion(bvh, scale=motion_units(bvh, source=source)), joints, bvh.parents)
     p = np.asarray(motion.positions, np.float64)
     left = p[0, joints["upper_leg_L"]] - p[0, joints["upper_leg_R"]]
     forward = np.cross(left, [0.0, 1.0, 0.0])
