@@ -1,5 +1,5 @@
-"""The robe on a moving skeleton (sims.costume): its free vertices stay outside the body's volumes,
-its fixed vertices sit exactly on the skeleton unless an arm pushes them aside, nothing goes NaN,
+"""The robe on a moving skeleton (sims.costume): its vertices stay outside the body's volumes,
+its fixed vertices sit exactly on the skeleton unless a volume pushes them aside, nothing goes NaN,
 and each frame continues from the last. Checked in numpy float64 from the motion's frames, on the
 built-in dance and on a vigorous stretch of a captured one, at a small robe."""
 
@@ -17,10 +17,10 @@ from sims.costume import ROBE_MARGIN, advance_costume, body_volumes, dress_perfo
 
 MOCAP = Path(os.environ.get("JAXRENDER_MOCAP", Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"))
 
-PENETRATION_TOL = 1e-3   # m: the bound on any free vertex inside a body volume (pushed to r + 12 mm)
+PENETRATION_TOL = 1e-3   # m: the bound on any vertex inside a body volume (pushed to r + 12 mm)
 FIXED_TOL = 1e-9         # m: the same rotation and translation in float64, another order of operations
-ON_SKELETON = 0.8        # the share of the fixed vertices exactly on the skeleton in every frame (measured: print)
-ASIDE_TOL = 0.05         # m: the farthest an arm pushes a fixed vertex aside (the arm's radius + 12 mm at most)
+ON_SKELETON = 0.6        # the share of the fixed vertices exactly on the skeleton in every frame (measured: print)
+ASIDE_TOL = 0.122        # m: the farthest a volume pushes a fixed vertex aside (the widest's radius + 12 mm at most)
 _SMALL = dict(rows=12, cols=12, sleeve_rows=4, sleeve_cols=8, settle_steps=400)
 _FRAMES, _FRAME_DT = 8, 0.1
 
@@ -54,8 +54,9 @@ def dressed():
     """The small robe on the built-in dance (2 s: every figure of it, faster) and on the captured stretch."""
     out = {}
     for source, bvh in (("built-in", noh_dance(duration=2.0)), ("captured", _captured_stretch())):
-        motion = pose_motion(bvh, scale=0.01)
-        out[source] = motion, dress_performer(motion, performer_joints(bvh.names), **_SMALL)
+        joints = performer_joints(bvh.names)
+        motion = fit_shoulders(pose_motion(bvh, scale=0.01), joints, bvh.parents)     # as the Noh scene places it
+        out[source] = motion, dress_performer(motion, joints, **_SMALL)
     return out
 
 
@@ -75,14 +76,14 @@ def test_robe_stays_outside_the_body_and_its_fixed_vertices_on_the_skeleton(dres
         at = (f + 1) * (round(_FRAME_DT / costume.dt) * costume.dt) / motion.frame_time
         k, w = int(np.floor(at)), at - np.floor(at)
         p, r = ((1 - w) * a[k] + w * a[k + 1] for a in frames)
-        deepest = max(deepest, float(_depth_inside(xs[f, free], *_numpy_capsules(costume, p, r)).max()))
+        deepest = max(deepest, float(_depth_inside(xs[f], *_numpy_capsules(costume, p, r)).max()))
         joint = np.asarray(costume.fixed_joint)
         expected = p[joint] + np.einsum("pij,pj->pi", r[joint], np.asarray(costume.fixed_local, np.float64))
         off = np.linalg.norm(xs[f, fixed] - expected, axis=-1)
         on_skeleton = min(on_skeleton, float(np.mean(off <= FIXED_TOL)))
         aside = max(aside, float(off.max()))
         moved = max(moved, float(np.abs(xs[f] - np.asarray(costume.state.x)).max()))
-    print(source, "deepest free vertex inside a volume:", deepest, "m; largest move", moved, "; fixed vertices on the "
+    print(source, "deepest vertex inside a volume:", deepest, "m; largest move", moved, "; fixed vertices on the "
           "skeleton (least share in a frame):", on_skeleton, "farthest pushed aside:", aside, "m")
     assert deepest <= PENETRATION_TOL
     assert on_skeleton >= ON_SKELETON and aside <= ASIDE_TOL
