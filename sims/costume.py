@@ -533,32 +533,32 @@ def _push_triangles_out(x: Float[Array, "N 3"], triangles: Int[Array, "T 3"], in
     p0, p1, p2 = (x[triangles[:, k]] for k in range(3))
     e1, e2 = p1 - p0, p2 - p0
     normal = jnp.cross(e1, e2)
-    area2 = jnp.maximum(jnp.sum(normal * normal, -1), 1e-30)                     # T
-    n = normal / jnp.sqrt(area2)[:, None]
-    ha, hb = (jnp.einsum("tk,tbk->tb", n, e[None] - p0[:, None]) for e in (a, b))    # T B signed heights
-
-    def inside(point):                                                          # T B 3 -> T B
-        q = point - p0[:, None]
-        w1 = jnp.einsum("tbk,tk->tb", jnp.cross(q, e2[:, None]), n)
-        w2 = jnp.einsum("tbk,tk->tb", jnp.cross(e1[:, None], q), n)
-        bary = jnp.stack([1 - (w1 + w2) / root, w1 / root, w2 / root], -1)      # of its projection
-        return jnp.all(bary >= 0, axis=-1), bary
-
-    root = jnp.sqrt(area2)[:, None]
+    area = jnp.sqrt(jnp.maximum(jnp.sum(normal * normal, -1), 1e-30))[:, None]   # T 1 (twice the area)
+    n = normal / area
+    # height over the plane and barycentric (w1, w2) of a point's projection: each a dot product
+    # with a vector of the triangle, less its value at p0: one small matrix product for all pairs
+    basis = jnp.stack([n, jnp.cross(e2, n) / area, jnp.cross(n, e1) / area], 1)     # T 3 3
+    offset = jnp.einsum("tjk,tk->tj", basis, p0)                                    # T 3
+    ha, w1a, w2a = jnp.einsum("tjk,bk->jtb", basis, a) - offset.T[:, :, None]     # each T B
+    hb, w1b, w2b = jnp.einsum("tjk,bk->jtb", basis, b) - offset.T[:, :, None]
     t = ha / jnp.where(ha == hb, 1.0, ha - hb)
-    pierced = (ha * hb < 0) & inside(a[None] + t[..., None] * (b - a)[None])[0]
-    free = jnp.stack([inverse_mass[triangles[:, k]] for k in range(3)], -1)[:, None]  # T 1 3
-    coef, hit = 0.0, False
-    for end, h in ((a, ha), (b, hb)):
-        within, bary = inside(jnp.broadcast_to(end[None], h.shape + (3,)))
-        depth = jnp.where(within & ~pierced, jnp.maximum(radius[None] - jnp.abs(h), 0.0), 0.0)   # T B
-        w = bary * free
-        scale = 1.0 / jnp.maximum(jnp.sum(bary * w, -1), 1.0 / 3.0)             # the point moves by depth
-        coef = coef + jnp.einsum("tbk,tb->tk", w, scale * -jnp.sign(h) * depth)  # T 3: each corner along n
+    w1t, w2t = (1 - t) * w1a + t * w1b, (1 - t) * w2a + t * w2b                   # where the axis meets the plane
+    pierced = (ha * hb < 0) & (w1t >= 0) & (w2t >= 0) & (w1t + w2t <= 1)
+    free = [inverse_mass[triangles[:, k]][:, None] for k in range(3)]            # 3 x T 1
+    coef, hit = [0.0, 0.0, 0.0], False
+    for h, w1, w2 in ((ha, w1a, w2a), (hb, w1b, w2b)):
+        bary = (1 - w1 - w2, w1, w2)                                             # each T B
+        within = (bary[0] >= 0) & (w1 >= 0) & (w2 >= 0) & ~pierced
+        depth = jnp.where(within, jnp.maximum(radius[None] - jnp.abs(h), 0.0), 0.0)   # T B
+        # the point moves by depth: its corners by their shares, scaled so that the shares' sum does
+        scale = 1.0 / jnp.maximum(sum(bk * bk * fk for bk, fk in zip(bary, free)), 1.0 / 3.0)
+        g = scale * -jnp.sign(h) * depth
+        coef = [ck + fk[:, 0] * jnp.sum(bk * g, axis=1) for ck, bk, fk in zip(coef, bary, free)]   # T: along n
         hit = hit | jnp.any(depth > 0, axis=1)
+    coef = jnp.stack(coef, -1)                                                   # T 3
     corners = triangles.reshape(-1)
     move = (coef[..., None] * n[:, None]).reshape(-1, 3)
-    active = (hit[:, None] & (free[:, 0] > 0)).reshape(-1).astype(x.dtype)
+    active = (hit[:, None] & (jnp.concatenate(free, -1) > 0)).reshape(-1).astype(x.dtype)
     total = jax.ops.segment_sum(move, corners, num_segments=x.shape[0])
     count = jax.ops.segment_sum(active, corners, num_segments=x.shape[0])
     return x + total / jnp.maximum(count, 1.0)[:, None]

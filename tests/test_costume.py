@@ -149,3 +149,31 @@ def _below(parents, j, root):
             return True
         j = parents[j]
     return False
+
+
+@pytest.mark.parametrize("fixed_corner", [None, 2])
+def test_triangle_pushed_off_a_capsule_end_poking_into_it(fixed_corner):
+    """A capsule's end 1 cm under a large triangle, radius 3 cm: the triangle's point over the end
+    ends 3 cm from it, moved straight up (a fixed corner stays; the end is nearest the free ones,
+    whose shares carry the whole move); an axis through the triangle, or an end beside it, moves
+    nothing. Float64, against the plane's geometry."""
+    from sims.costume import _push_triangles_out
+    x = jnp.asarray([[-1.0, 0.0, -1.0], [1.0, 0.0, -1.0], [0.0, 0.0, 1.0]])
+    tri = jnp.asarray([[0, 1, 2]])
+    free = jnp.ones(3) if fixed_corner is None else jnp.ones(3).at[fixed_corner].set(0.0)
+    radius = jnp.asarray([0.03])
+    end, far = jnp.asarray([[0.6, -0.01, -0.7]]), jnp.asarray([[0.6, -0.5, -0.7]])
+    y = np.asarray(_push_triangles_out(x, tri, free, end, far, radius))
+    np.testing.assert_array_equal(y[:, [0, 2]], np.asarray(x)[:, [0, 2]])         # along the normal only
+    if fixed_corner is not None:
+        np.testing.assert_array_equal(y[fixed_corner], np.asarray(x)[fixed_corner])
+    # the plane through the moved corners, its height over the end's projection
+    normal = np.cross(y[1] - y[0], y[2] - y[0])
+    normal /= np.linalg.norm(normal)
+    height = float(np.dot(np.asarray(end[0]) - y[0], normal))
+    np.testing.assert_allclose(abs(height), 0.03, rtol=0.02)                        # moved to the radius (tilted a little)
+    assert y[:, 1].min() >= 0.0
+    through = np.asarray(_push_triangles_out(x, tri, free, end, jnp.asarray([[0.6, 0.5, -0.7]]), radius))
+    beside = np.asarray(_push_triangles_out(x, tri, free, end + 5.0, far + 5.0, radius))
+    np.testing.assert_array_equal(through, np.asarray(x))
+    np.testing.assert_array_equal(beside, np.asarray(x))
