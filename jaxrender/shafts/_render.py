@@ -76,15 +76,23 @@ def render(scene: ShaftsScene, *, method: str = DEFAULT_METHOD, samples_per_pixe
     """Render `scene` with `method` ("adaptive", "equiangular", "planes" or "raymarch"; its keyword options
     pass through, e.g. samples=, planes=, quantize_bits=) and `samples_per_pixel` (k*k).
 
+    The frame is rendered jitted (one compiled program per method, samples per pixel and options,
+    reused by later calls; inside the caller's own `jax.jit` or `jax.grad` it is traced with them;
+    an array among the options is rendered op by op).
+
     target_error: instead of given counts, the cheapest counts predicted to keep the in-scattered
     light within this relative RMS of the converged result (`choose_counts`: an estimate on a small
-    proxy of the scene); then the frame is rendered jitted. Needs concrete values: call it outside
-    `jax.jit` (or call `choose_counts` there and pass its options)."""
+    proxy of the scene). Needs concrete values: call it outside `jax.jit` (or call `choose_counts`
+    there and pass its options)."""
     if method not in METHODS:
         raise ValueError(f"unknown shafts method {method!r}: use one of {', '.join(METHODS)}")
     if target_error is not None:
         choice = choose_counts(scene, target_error, method=method, **options)
         options = {**options, **choice.options}
-        return _jitted(method, samples_per_pixel, tuple(sorted(options.items())))(scene)
-    fn = METHODS[method]
-    return supersample(lambda s: fn(s, **options), scene, samples_per_pixel)
+    key = tuple(sorted(options.items()))
+    try:
+        hash(key)
+    except TypeError:                     # an array among the options: as it is, op by op
+        fn = METHODS[method]
+        return supersample(lambda s: fn(s, **options), scene, samples_per_pixel)
+    return _jitted(method, samples_per_pixel, key)(scene)
