@@ -171,7 +171,7 @@ def test_triangle_pushed_off_a_capsule_end_poking_into_it(fixed_corner):
     normal = np.cross(y[1] - y[0], y[2] - y[0])
     normal /= np.linalg.norm(normal)
     height = float(np.dot(np.asarray(end[0]) - y[0], normal))
-    np.testing.assert_allclose(abs(height), 0.03, rtol=0.02)                        # moved to the radius (tilted a little)
+    np.testing.assert_allclose(abs(height), 0.03, rtol=0.02)    # moved to the radius (tilted a little)
     assert y[:, 1].min() >= 0.0
     through = np.asarray(_push_triangles_out(x, tri, free, end, jnp.asarray([[0.6, 0.5, -0.7]]), radius))
     beside = np.asarray(_push_triangles_out(x, tri, free, end + 5.0, far + 5.0, radius))
