@@ -114,16 +114,16 @@ def body_volumes(motion: SkeletonMotion, joints: dict[str, int]) -> BodyVolumes:
     add("belly", joint_end(joints["spine"]), joint_end(joints["chest"]), 0.11)
     add("chest", joint_end(joints["chest"]), joint_end(joints["neck"]), 0.10)
     add("neck", joint_end(joints["neck"]), joint_end(joints["head"]), 0.05)
-    add("head", joint_end(joints["head"]), beyond(joints["head"], joints["neck"], 0.11 * s), 0.09)
+    head, head_length, head_radius = joints["head"], 0.11, 0.09
+    add("head", joint_end(head), beyond(head, joints["neck"], head_length * s), head_radius)
     # the face: around the Noh mask that the performer's rig binds at this capsule's middle (its
     # nose 7.7 cm before it, its rim inside the head's volume), so that the robe stays off the mask
-    head = joints["head"]
     up = p0[head] - p0[joints["neck"]]
     up /= max(np.linalg.norm(up), 1e-9)
     forward = np.cross(p0[joints["upper_leg_L"]] - p0[joints["upper_leg_R"]], up)
     forward /= max(np.linalg.norm(forward), 1e-9)
     # the head's middle, 12 mm down and 3.5 cm inside its front
-    face = p0[head] + (0.055 - 0.012) * s * up + (0.09 - 0.035) * s * forward
+    face = p0[head] + (head_length / 2 - 0.012) * s * up + (head_radius - 0.035) * s * forward
     at_head = lambda point: (head, r0[head].T @ (point - p0[head]))  # noqa: E731
     add("face", at_head(face - 0.05 * s * up), at_head(face + 0.05 * s * up), 0.08)
     add("shoulders", joint_end(joints["upper_arm_L"]), joint_end(joints["upper_arm_R"]), 0.05)
