@@ -65,10 +65,15 @@ def supersample(render_fn: Callable[[ShaftsScene], object], scene: ShaftsScene, 
     return jax.tree_util.tree_map(lambda x: _box_down(x, k), out)
 
 
+def _frame(method: str, samples_per_pixel: int, options: dict):
+    """scene -> the frame of `method` with `options`, supersampled."""
+    fn = METHODS[method]
+    return lambda s: supersample(lambda t: fn(t, **options), s, samples_per_pixel)
+
+
 @functools.lru_cache(maxsize=16)
 def _jitted(method: str, samples_per_pixel: int, options: tuple):
-    fn, opts = METHODS[method], dict(options)
-    return jax.jit(lambda s: supersample(lambda t: fn(t, **opts), s, samples_per_pixel))
+    return jax.jit(_frame(method, samples_per_pixel, dict(options)))
 
 
 def render(scene: ShaftsScene, *, method: str = DEFAULT_METHOD, samples_per_pixel: int = 1,
@@ -93,6 +98,5 @@ def render(scene: ShaftsScene, *, method: str = DEFAULT_METHOD, samples_per_pixe
     try:
         hash(key)
     except TypeError:                     # an array among the options: as it is, op by op
-        fn = METHODS[method]
-        return supersample(lambda s: fn(s, **options), scene, samples_per_pixel)
+        return _frame(method, samples_per_pixel, options)(scene)
     return _jitted(method, samples_per_pixel, key)(scene)
