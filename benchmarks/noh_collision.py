@@ -33,15 +33,35 @@ CAPTURED = "dance-short_normal_001.bvh"
 FRAME_DT = 0.1
 
 
+def part_names(performer, shape: BodyShape, t: float) -> list[str]:
+    """Each closed part of the body's mesh named after the body volume (capsule) nearest its
+    vertices at time `t`; the open one is the mask."""
+    import jax.numpy as jnp
+
+    body = performer.costume.body
+    a, b = (np.asarray(e, np.float64) for e in body.ends(*performer.motion.at(jnp.asarray(t))))
+    names = []
+    for k in range(len(shape.closed)):
+        x = shape.vertices[np.unique(shape.triangles[shape.part == k])]
+        ab = b - a
+        s = np.clip(np.einsum("nbk,bk->nb", x[:, None] - a[None], ab) / np.maximum(np.sum(ab * ab, -1), 1e-12), 0, 1)
+        dist = np.linalg.norm(x[:, None] - (a[None] + s[..., None] * ab[None]), axis=-1) - np.asarray(body.radius)
+        names.append(body.names[int(np.argmin(np.mean(np.abs(dist), axis=0)))] if shape.closed[k] else "mask")
+    return names
+
+
 def measure(label: str, bvh, duration: float) -> dict:
     performer = dance_performer(bvh, duration=duration)
     frames = int(round(duration / FRAME_DT))
-    shape, previous, rows, seconds = None, None, [], []
+    shape, previous, rows, seconds, by_part = None, None, [], [], 0
     for body, robe in performer_frames(performer, frames, FRAME_DT):
         t0, c0 = time.perf_counter(), time.process_time()
         shape = BodyShape(body.vertices, body.triangles) if shape is None else shape.moved(body.vertices)
         c = contact(robe.vertices, robe.triangles, shape)
         seconds.append((time.perf_counter() - t0, time.process_time() - c0))
+        by_part = by_part + c.by_part
+        if len(rows) == 0:
+            names = part_names(performer, shape, FRAME_DT)
         move = 0.0 if previous is None else float(np.linalg.norm(robe.vertices - previous, axis=-1).max())
         previous = robe.vertices
         rows.append((c.triangles, c.depth, c.crossing_edges, c.inside_vertices, move))
@@ -51,7 +71,8 @@ def measure(label: str, bvh, duration: float) -> dict:
                closed_parts=int(shape.closed.sum()), through_total=int(a[:, 0].sum()),
                through_max=int(a[:, 0].max()), frames_with=int((a[:, 0] > 0).sum()), deepest_m=float(a[:, 1].max()),
                largest_move_m=float(a[:, 4].max()), check_wall_s=float(wall), check_cpu_s=float(cpu),
-               load=os.getloadavg()[0])
+               load=os.getloadavg()[0],
+               through_by_part={n: int(k) for n, k in sorted(zip(names, by_part), key=lambda nk: -nk[1]) if k})
     print(out, flush=True)
     return out
 
@@ -67,11 +88,13 @@ def main() -> None:
     rows = []
     for r in runs:
         status = "met" if r["through_total"] == 0 else "missed"
+        most = list(r["through_by_part"].items())[:5]
+        parts = f"; through the {', '.join(f'{n} {k}' for n, k in most)}" if most else ""
         rows.append(dict(
             area="noh", target=f"0 robe triangles through the body as rendered, {r['label']} dance",
             measured=f"{r['through_total']} triangles through over {r['frames']} frames (most in a frame "
-                     f"{r['through_max']}, deepest {1000 * r['deepest_m']:.1f} mm); robe's largest move per frame "
-                     f"{100 * r['largest_move_m']:.1f} cm; check {r['check_cpu_s']:.2f} s CPU per frame, load "
+                     f"{r['through_max']}, deepest {1000 * r['deepest_m']:.1f} mm{parts}); robe's largest move per "
+                     f"frame {100 * r['largest_move_m']:.1f} cm; check {r['check_cpu_s']:.2f} s CPU per frame, load "
                      f"{r['load']:.1f}, {cpu_description()}",
             status=status, figures=r))
     write_results("noh_collision", rows, quick=args.quick)

@@ -148,6 +148,7 @@ class Contact:
     depth: float
     crossing_edges: int
     inside_vertices: int
+    by_part: np.ndarray      # robe triangles through each part of the body (one triangle can count for two)
 
 
 class BodyShape:
@@ -197,19 +198,23 @@ def _contact(robe_vertices: np.ndarray, robe_triangles: np.ndarray, body: BodySh
     s = np.asarray([0.25, 0.5, 0.75])
     samples = np.concatenate([rv, (p[:, None] * (1 - s[:, None]) + q[:, None] * s[:, None]).reshape(-1, 3)])
     edge_hit = np.zeros(len(edges), bool)
-    tri_hit = np.zeros(len(rt), bool)
     inside = np.zeros(len(samples), bool)
     depth = 0.0
     zero_seg, zero_tri = np.zeros((2, 3)), np.zeros((3, 3))
+    tri_keys = np.sort(np.stack([rt[:, [0, 1]], rt[:, [1, 2]], rt[:, [2, 0]]], 1), axis=-1)   # T 3 2
+    tri_keys = tri_keys[..., 0] * n + tri_keys[..., 1]
+    through = np.zeros((len(body.sphere), len(rt)), bool)     # part x robe triangle
     for k, (centre, radius) in enumerate(body.sphere):
         near = np.flatnonzero(_segment_point_distance(p, q, centre) <= radius)
         if near.size:
             hit = np.asarray(_crossings(_bucket(np.stack([p[near], q[near]], 1), zero_seg), body.tri[k]))
-            edge_hit[near] |= hit[:len(near)].any(axis=1)
+            crossing = near[hit[:len(near)].any(axis=1)]
+            edge_hit[crossing] = True
+            through[k] |= np.isin(tri_keys, edges[crossing, 0] * n + edges[crossing, 1]).any(axis=1)
         close = np.flatnonzero(np.linalg.norm(tri_c - centre, axis=-1) <= radius + tri_r)
         if close.size:
             hit = np.asarray(_crossings(_bucket(body.edges[k], zero_seg), _bucket(tri[close], zero_tri)))
-            tri_hit[close] |= hit[:len(body.edges[k]), :len(close)].any(axis=0)
+            through[k, close] |= hit[:len(body.edges[k]), :len(close)].any(axis=0)
         if not body.closed[k]:
             continue
         there = np.flatnonzero(np.linalg.norm(samples - centre, axis=-1) <= radius)
@@ -217,15 +222,12 @@ def _contact(robe_vertices: np.ndarray, robe_triangles: np.ndarray, body: BodySh
             w = np.asarray(_winding(_bucket(samples[there], centre), body.tri[k]))[:len(there)]
             deep = there[np.abs(w) > 0.5]
             inside[deep] = True
+            through[k] |= np.isin(rt, deep[deep < n]).any(axis=1)
             if deep.size:
                 dist = _point_triangle_distance(samples[deep], body.tri[k][np.any(body.tri[k] != 0, axis=(1, 2))])
                 depth = max(depth, float(dist.min(axis=1).max()))
-    vertex_in = inside[:n]
-    tri_edges = np.sort(np.stack([rt[:, [0, 1]], rt[:, [1, 2]], rt[:, [2, 0]]], 1), axis=-1)   # T 3 2
-    hit_keys = edges[edge_hit, 0] * n + edges[edge_hit, 1]
-    through = tri_hit | np.isin(tri_edges[..., 0] * n + tri_edges[..., 1], hit_keys).any(axis=1)
-    through |= vertex_in[rt].any(axis=1)
-    return Contact(int(through.sum()), depth, int(edge_hit.sum()), int(vertex_in.sum()))
+    return Contact(int(through.any(axis=0).sum()), depth, int(edge_hit.sum()), int(inside[:n].sum()),
+                   through.sum(axis=1))
 
 
 def dance_performer(bvh, *, duration: float):
