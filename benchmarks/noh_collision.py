@@ -40,10 +40,9 @@ def part_names(performer, shape: BodyShape, t: float) -> list[str]:
 
     body = performer.costume.body
     a, b = (np.asarray(e, np.float64) for e in body.ends(*performer.motion.at(jnp.asarray(t))))
-    names = []
+    ab, names = b - a, []
     for k in range(len(shape.closed)):
         x = shape.vertices[np.unique(shape.triangles[shape.part == k])]
-        ab = b - a
         s = np.clip(np.einsum("nbk,bk->nb", x[:, None] - a[None], ab) / np.maximum(np.sum(ab * ab, -1), 1e-12), 0, 1)
         dist = np.linalg.norm(x[:, None] - (a[None] + s[..., None] * ab[None]), axis=-1) - np.asarray(body.radius)
         names.append(body.names[int(np.argmin(np.mean(np.abs(dist), axis=0)))] if shape.closed[k] else "mask")
