@@ -22,7 +22,7 @@ from jaxrender.app.scenes.noh.motion import (
     split_rasterize,
 )
 from jaxrender.app.scenes.noh.performer import performer_mesh
-from jaxrender.app.scenes.noh.rig import prepare_rig
+from jaxrender.app.scenes.noh.rig import large_shadow_window, prepare_rig
 from jaxrender.app.scenes.noh.stage import FLAME_BASE, FLAME_SIZE, cast_stage
 from jaxrender.fabric import depth_map, fresnel_schlick, raster_window, rasterize, spot_pinhole
 from jaxrender.shadows import pcss
@@ -188,3 +188,21 @@ def test_half_resolution_stage_shadows_match_pcss_at_every_pixel(setup):
     err = np.abs(half - full)
     print("stage shadow error: mean", err.mean(), "p99", np.percentile(err, 99))
     assert err.mean() < SHADOW_MEAN_TOL and np.mean(err > 0.5) < 0.01
+
+
+def test_large_triangle_window_never_larger_than_the_map():
+    """The depth maps' window for large triangles: the extent's power of two, at most the map's;
+    and a map-sized window still draws a triangle that spans the whole map (its window's origin
+    is clipped to the map), as a brute-force point-in-triangle test over every texel says."""
+    assert large_shadow_window(40.0, 512) == 64 and large_shadow_window(514.0, 512) == 512
+    assert large_shadow_window(1500.0, 512) == 512 and large_shadow_window(300.0, 300) == 512
+    ph = spot_pinhole(jnp.zeros(3), jnp.eye(3), 1.0, 32)          # looking along +z, 90 degrees
+    tri = jnp.asarray([[-40.0, -40.0, 2.0], [40.0, -40.0, 2.0], [0.5, 1.0, 2.0]])   # two corners far beyond the map
+    depth = np.asarray(depth_map(ph, tri, jnp.asarray([[0, 1, 2]]), window=large_shadow_window(32.0, 32)))
+    px = np.asarray(ph.project(tri)[0])
+    y, x = np.mgrid[0:32, 0:32] + 0.5
+    side = [(px[j, 0] - px[i, 0]) * (y - px[i, 1]) - (px[j, 1] - px[i, 1]) * (x - px[i, 0])
+            for i, j in ((0, 1), (1, 2), (2, 0))]
+    inside = np.all([d >= 0 for d in side], axis=0) | np.all([d <= 0 for d in side], axis=0)
+    assert 0 < inside.sum() < 32 * 32
+    np.testing.assert_array_equal(np.isfinite(depth), inside)

@@ -38,7 +38,17 @@ from jaxrender.textures import bilinear
 from sims import ClothState, advance_costume
 
 from .performer import PerformerMesh, performer_mesh
-from .rig import FlamePixels, NohRig, cell_radiance, pixel_box, pow2, prepare_rig, projected_bounds, round_up
+from .rig import (
+    FlamePixels,
+    NohRig,
+    cell_radiance,
+    large_shadow_window,
+    pixel_box,
+    pow2,
+    prepare_rig,
+    projected_bounds,
+    round_up,
+)
 from .scene import NohScene
 from .shading import (
     PerformerPoints,
@@ -301,8 +311,8 @@ def grown(rig: NohRig, counts: FrameCounts) -> NohRig | None:
         changes["large_view_window"] = pow2(float(counts.view_extent))
     if int(counts.view_large) > rig.large_view_capacity:
         changes["large_view_capacity"] = round_up(1.25 * int(counts.view_large), 64)
-    if float(counts.shadow_extent) > rig.large_window:
-        changes["large_window"] = pow2(float(counts.shadow_extent))
+    if large_shadow_window(float(counts.shadow_extent), rig.shadow_resolution) > rig.large_window:
+        changes["large_window"] = large_shadow_window(float(counts.shadow_extent), rig.shadow_resolution)
     bounds = np.asarray(counts.bounds)
     for name, b in (("view_box", bounds[:4]), ("mirror_box", bounds[4:])):
         old = getattr(rig, name)

@@ -118,6 +118,13 @@ def pow2(n: float) -> int:
     return int(2 ** math.ceil(math.log2(max(2.0, n))))
 
 
+def large_shadow_window(extent: float, resolution: int) -> int:
+    """The depth maps' window for large triangles: `extent` pixels rounded up to a power of two,
+    never more than the map's own (a window's origin is clipped to the map, so one of the map's
+    size covers any triangle)."""
+    return pow2(min(extent, resolution))
+
+
 def pixel_box(bounds, ph: Pinhole, margin: float) -> tuple[int, int, int, int]:
     """The pixel rectangle (x0, y0, w, h) around `bounds` (x0, y0, x1, y1), `margin` x its size
     wider on every side, clipped to the image (the full image if it misses it)."""
@@ -389,7 +396,8 @@ def prepare_rig(scene: NohScene, *, key: PRNGKeyArray, k_env: int = 20, shadow_r
     return NohRig(ph, view.rays, view.background, view.mirrored_sky, stage, mirror, grid, view.env_direction,
                   performer_env, flames, mirrored_flames, jnp.asarray(light_pos, dtype), jnp.asarray(light_rot, dtype),
                   float(tan_c), window, large_view_window, large_view_capacity, shadow_window,
-                  pow2(max(2 * shadow_window, 1.5 * largest)), round_up(1.5 * most + 32, 64), shadow_resolution,
+                  large_shadow_window(max(2 * shadow_window, 1.5 * largest), shadow_resolution),
+                  round_up(1.5 * most + 32, 64), shadow_resolution,
                   round_up(0.75 * covered),
                   round_up(0.35 * covered), steps, float(near), float(roughness), view_box, mirror_box)
 
