@@ -311,8 +311,9 @@ def grown(rig: NohRig, counts: FrameCounts) -> NohRig | None:
         changes["large_view_window"] = pow2(float(counts.view_extent))
     if int(counts.view_large) > rig.large_view_capacity:
         changes["large_view_capacity"] = round_up(1.25 * int(counts.view_large), 64)
-    if large_shadow_window(float(counts.shadow_extent), rig.shadow_resolution) > rig.large_window:
-        changes["large_window"] = large_shadow_window(float(counts.shadow_extent), rig.shadow_resolution)
+    shadow_window = large_shadow_window(float(counts.shadow_extent), rig.shadow_resolution)
+    if shadow_window > rig.large_window:
+        changes["large_window"] = shadow_window
     bounds = np.asarray(counts.bounds)
     for name, b in (("view_box", bounds[:4]), ("mirror_box", bounds[4:])):
         old = getattr(rig, name)
