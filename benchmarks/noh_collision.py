@@ -4,10 +4,12 @@ and winding-number tests in float64, nothing of the simulator's capsules), the r
 move per frame (it still moves freely), and what the check costs per frame.
 
 The robe is simulated as `jaxrender noh` simulates it (float32 unless JAX_ENABLE_X64=1), 0.1 s a
-frame: the whole built-in dance (6 s, 60 frames) and the whole captured dance
-(dance-short_normal_001.bvh, 63 s, 633 frames). Rows "Noh robe" to benchmarks/results/noh_collision.json.
+frame: the whole built-in dance (6 s, 60 frames), the whole captured dance
+(dance-short_normal_001.bvh, 63 s, 633 frames), and two captured motions the robe was not developed
+on: a bow (bow_normal_001.bvh, 4.5 s) and a walk (walk_normal_001.bvh, 6.4 s). Rows "Noh robe" to
+benchmarks/results/noh_collision.json.
 
-Run: `python benchmarks/noh_collision.py` (`--quick`: 0.5 s of each, nothing written).
+Run: `python benchmarks/noh_collision.py` (`--quick`: 0.5 s of the built-in and the captured dance, nothing written).
 """
 
 from __future__ import annotations
@@ -30,6 +32,10 @@ from sims import noh_dance  # noqa: E402
 
 MOCAP = Path(os.environ.get("JAXRENDER_MOCAP", Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"))
 CAPTURED = "dance-short_normal_001.bvh"
+# the captured motions beside the built-in dance: the dance the robe was developed on, then a bow and a
+# walk it was not (each whole)
+OTHERS = (("captured dance", CAPTURED), ("captured bow", "bow_normal_001.bvh"),
+          ("captured walk", "walk_normal_001.bvh"))
 FRAME_DT = 0.1
 
 
@@ -78,19 +84,21 @@ def measure(label: str, bvh, duration: float) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="0.5 s of each dance, nothing written")
+    parser.add_argument("--quick", action="store_true", 
+                        help="0.5 s of the built-in and the captured dance, nothing written")
     args = parser.parse_args()
-    captured = read_bvh(MOCAP / CAPTURED)
-    whole = captured.motion.shape[0] * captured.frame_time
-    runs = [measure("built-in", noh_dance(), 0.5 if args.quick else 6.0),
-            measure("captured", captured, 0.5 if args.quick else FRAME_DT * int(whole / FRAME_DT))]
+    runs = [measure("built-in dance", noh_dance(), 0.5 if args.quick else 6.0)]
+    for label, name in (("captured dance", CAPTURED),) if args.quick else OTHERS:
+        bvh = read_bvh(MOCAP / name)
+        whole = bvh.motion.shape[0] * bvh.frame_time
+        runs.append(measure(label, bvh, 0.5 if args.quick else FRAME_DT * int(whole / FRAME_DT)))
     rows = []
     for r in runs:
         status = "met" if r["through_total"] == 0 else "missed"
         most = list(r["through_by_part"].items())[:5]
         parts = f"; through the {', '.join(f'{n} {k}' for n, k in most)}" if most else ""
         rows.append(dict(
-            area="noh", target=f"0 robe triangles through the body as rendered, {r['label']} dance",
+            area="noh", target=f"0 robe triangles through the body as rendered, {r['label']}",
             measured=f"{r['through_total']} triangles through over {r['frames']} frames (most in a frame "
                      f"{r['through_max']}, deepest {1000 * r['deepest_m']:.1f} mm{parts}); robe's largest move per "
                      f"frame {100 * r['largest_move_m']:.1f} cm; check {r['check_cpu_s']:.2f} s CPU per frame, load "

@@ -12,8 +12,15 @@ import numpy as np
 import pytest
 
 from jaxrender.io import BVHMotion, read_bvh
-from sims import costume_frames, noh_dance, performer_joints, pose_motion
-from sims.costume import ROBE_MARGIN, advance_costume, body_volumes, dress_performer, fit_shoulders
+from sims import SkeletonMotion, costume_frames, noh_dance, performer_joints, pose_motion
+from sims.costume import (
+    ROBE_MARGIN,
+    _after_contact,
+    advance_costume,
+    body_volumes,
+    dress_performer,
+    fit_shoulders,
+)
 
 MOCAP = Path(os.environ.get("JAXRENDER_MOCAP", Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"))
 
@@ -21,6 +28,9 @@ PENETRATION_TOL = 1e-3   # m: the bound on any vertex inside a body volume (push
 FIXED_TOL = 1e-9         # m: the same rotation and translation in float64, another order of operations
 ON_SKELETON = 0.6        # the share of the fixed vertices exactly on the skeleton in every frame (measured: print)
 ASIDE_TOL = 0.122        # m: the farthest a volume pushes a fixed vertex aside (the widest's radius + 12 mm at most)
+# m/s: the fastest and the median vertex of the small robe held still for 1.5 s (measured 0.43-0.81 and
+# 0.01-0.06 from 0.75 s to 3 s; 5.3-6.4 and 0.33-0.59 when a push became velocity)
+REST_SPEED, REST_MEDIAN = 1.0, 0.1
 _SMALL = dict(rows=12, cols=12, sleeve_rows=4, sleeve_cols=8, settle_steps=400)
 _FRAMES, _FRAME_DT = 8, 0.1
 
@@ -110,6 +120,33 @@ def _centre_line_distance(p, joints, joint):
     axis = (n - c) / np.linalg.norm(n - c, axis=-1, keepdims=True)
     off = x - c
     return np.linalg.norm(off - np.sum(off * axis, -1, keepdims=True) * axis, axis=-1)
+
+
+def test_after_contact_removes_the_move_into_the_body_and_adds_none():
+    """Contacts are inelastic: the next step's velocity keeps the step's move along the surface and
+    out of it, loses its move into it, and the push itself adds none; a fixed or untouched vertex
+    keeps Verlet's previous position."""
+    mm = 1e-3
+    x = np.zeros((5, 3))
+    free = np.asarray([[0, -1, 0], [1, -1, 0], [0, 1, 0], [0, -1, 0], [1, -1, 0]], np.float64) * mm
+    pushed = free + np.asarray([[0, 1, 0], [0, 1, 0], [0, 2, 0], [0, 1, 0], [0, 0, 0]], np.float64) * mm
+    inverse_mass = np.asarray([1.0, 1.0, 1.0, 0.0, 1.0])
+    previous = np.asarray(_after_contact(*map(jnp.asarray, (x, free, pushed, inverse_mass))))
+    velocity = pushed - previous                                   # per step, as the next Verlet step reads it
+    np.testing.assert_allclose(velocity, [[0, 0, 0], [mm, 0, 0], [0, mm, 0], pushed[3] - x[3], [mm, -mm, 0]],
+                               atol=1e-15)
+
+
+def test_a_robe_held_still_comes_to_rest(dressed):
+    """The small robe at the dance's first pose held for 1.5 s comes to rest: its fastest vertex
+    below `REST_SPEED`, its median one below `REST_MEDIAN` (without inelastic contacts the edge push
+    against the collar's springs kept vertices at 5-6 m/s)."""
+    motion, costume = dressed["built-in"]
+    still = SkeletonMotion(motion.positions[:1], motion.rotations[:1], motion.frame_time)
+    state = jax.jit(lambda c, m: advance_costume(c, c.state, m, steps=3000))(costume, still)
+    speed = np.linalg.norm(np.asarray(state.x - state.x_prev), axis=-1) / costume.dt
+    print("fastest vertex after 1.5 s still:", speed.max(), "m/s; median", np.median(speed))
+    assert np.all(np.isfinite(speed)) and speed.max() < REST_SPEED and np.median(speed) < REST_MEDIAN
 
 
 def test_arms_moved_out_to_the_body_shoulder_width():
