@@ -586,8 +586,9 @@ def advance_costume(costume: Costume, state: ClothState, motion: SkeletonMotion,
     """Continue the robe's Verlet simulation from `state` for `steps` steps of `costume.dt`
     following `motion`: springs with dampers along them, air drag, gravity; after each step every
     free vertex is pushed out of the body's volumes (`passes` sweeps, to radius + margin), every
-    edge too (`_push_edges_out`), and above the floor, and the fixed vertices are set on the
-    skeleton, pushed out of the volumes. Jittable (`steps` static)."""
+    edge too (`_push_edges_out`), and above the floor, each push an inelastic contact
+    (`_after_contact`), and the fixed vertices are set on the skeleton, pushed out of the volumes.
+    Jittable (`steps` static)."""
     x0 = state.x
     dtype = x0.dtype
     dt = costume.dt
@@ -609,8 +610,8 @@ def advance_costume(costume: Costume, state: ClothState, motion: SkeletonMotion,
         force = jax.ops.segment_sum(f, sp.i, num_segments=n) - jax.ops.segment_sum(f, sp.j, num_segments=n)
         free = x + keep * (x - xp) + (force / costume.mass + g) * dt * dt
         pos, rot = motion.at(t)
-        xn = free
         a, b = body.ends(pos, rot)
+        xn = free
         for _ in range(passes):
             xn = _push_out(xn, a, b, body.radius + costume.margin)
         xn = _push_edges_out(xn, costume.edges, costume.inverse_mass, a, b, body.radius + costume.margin)
