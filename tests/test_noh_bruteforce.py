@@ -10,8 +10,8 @@ a shadow's edge or a shadow terminator (within `RADIUS` pixels, if it gives more
 pixel's luminance), and within `GLOW` pixels of a flame's mirror image or a reflected edge (the
 floor's gloss: a mip filter there, a cone of rays here), the two may differ; everywhere else they
 must match. Tolerances from measurement at 120 x 80 (`python benchmarks/noh_reference.py`,
-benchmarks/RESULTS.md, Noh): relative RMS where they must match 0.81-0.91 % in float64 and
-0.83-0.91 % in float32 (the target: 2 %), where they may differ 11.8-12.4 %; the performer's
+benchmarks/RESULTS.md, Noh): relative RMS where they must match 0.81-0.90 % in float64 and
+0.84-0.90 % in float32 (the target: 2 %), where they may differ 11.8-12.4 %; the performer's
 pixels are the same set. The float32 frame's reference shades the float32 child's own scene
 (`with_float_leaves`): a seed draws different procedural materials in each precision.
 """
