@@ -84,7 +84,7 @@ def measure(label: str, bvh, duration: float) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", 
+    parser.add_argument("--quick", action="store_true",
                         help="0.5 s of the built-in and the captured dance, nothing written")
     args = parser.parse_args()
     runs = [measure("built-in dance", noh_dance(), 0.5 if args.quick else 6.0)]
