@@ -41,7 +41,7 @@ QUICK_MODULES = {
 # The longest tests start first, so that under `-n 2` neither worker is left running one alone at the end.
 LONGEST_FIRST = ("test_noh_bruteforce.py", "test_user_runs.py::TestGallery", "test_user_runs.py::TestNohCommand",
                  "test_benchmarks_quick.py::TestNohScripts", "test_benchmarks_quick.py::TestShaftsScripts",
-                 "test_dask_fit.py", "test_shafts_adaptive.py", "test_robe_collision.py", "test_user_runs.py",
+                 "test_dask_fit.py", "test_shafts_adaptive.py", "test_user_runs.py",
                  "test_benchmarks_quick.py")
 # Under xdist (`--dist loadscope`, pyproject.toml) the tests of a module (or of a class) run on one
 # worker, so that its module fixtures and compiled functions are made once, not once per worker;

@@ -723,13 +723,22 @@ def keys(frame: int):
     return k_env, jax.random.fold_in(k_frames, frame)
 
 
+def robe_states(scene, frames: int) -> list:
+    """The robe's states over `frames` frames of 0.1 s from the settled robe: [f] is the state frame
+    f starts from ([0] the settled one), each frame one call of the same compiled frame."""
+    costume, motion = scene.performer.costume, scene.performer.motion
+    states = [costume.state]
+    for _ in range(frames):
+        states.append(_robe_frame(costume, motion, states[-1]))
+    return states
+
+
+_robe_frame = eqx.filter_jit(lambda c, m, s: costume_frames(c, m, frames=1, frame_dt=0.1, state=s)[1])
+
+
 def state_before(scene, frame: int):
     """The robe's state the frame starts from: `frame` frames of 0.1 s from the settled robe."""
-    costume, motion = scene.performer.costume, scene.performer.motion
-    if frame == 0:
-        return costume.state
-    _, state = eqx.filter_jit(lambda c, m: costume_frames(c, m, frames=frame, frame_dt=0.1))(costume, motion)
-    return state
+    return robe_states(scene, frame)[frame]
 
 
 def production_frame(scene, frame: int, state, *, shadow_resolution: int):
@@ -751,8 +760,9 @@ def reference_inputs(scene, frame: int, new_state) -> Frame:
     return frame_inputs(scene, new_state, scene.flames[:, frame % scene.flames.shape[1]], fire_key=key, env_key=k_env)
 
 
-# the float32 frames: rendered by a child Python without x64 (as users run), from the float64
-# states the frames start from; it saves each image and the Frame of its own state and samples
+# the float32 frames: rendered by a child Python without x64 (as users run), of the parent's scene
+# rounded to float32 (its robe unsettled until the parent's settled one replaces it), from the
+# float64 states the frames start from; it saves each image and the Frame of its own state and samples
 FLOAT32_CHILD = textwrap.dedent("""
     import json, sys
     import numpy as np
@@ -765,7 +775,9 @@ FLOAT32_CHILD = textwrap.dedent("""
     data = np.load(sys.argv[1])
     out = {}
     for label, frames in spec["cases"].items():
-        scene = nr.case_scene(label, spec["width"], spec["height"], **nr.small_scene())
+        scene = nr.case_scene(label, spec["width"], spec["height"], **nr.small_scene(), robe={"settle_steps": 0})
+        count = sum(k.startswith(f"{label}_scene_") for k in data.files)
+        scene = nr.with_float_leaves(scene, [data[f"{label}_scene_{i}"] for i in range(count)])
         for i, leaf in enumerate(nr.float_leaves(scene)):
             out[f"{label}_scene_{i}"] = np.asarray(leaf)
         for f in frames:
@@ -791,9 +803,8 @@ def float_leaves(scene) -> list:
 
 def with_float_leaves(scene, leaves: list):
     """`scene` with its floating-point arrays replaced by `leaves` (cast to each array's dtype):
-    the float32 child's scene in the parent's precision. A seed draws different procedural
-    materials in float32 and float64 (`jax.random` draws per dtype), so the reference of a float32
-    frame must shade the scene that frame was rendered from."""
+    the parent's scene in the float32 child, and back, the scene rounded to float32 in the
+    parent's precision, which the reference of a float32 frame shades."""
     flat, tree = jax.tree_util.tree_flatten(scene)
     if len(leaves) != sum(map(_is_float, flat)):
         raise ValueError(f"{len(leaves)} arrays for a scene of {sum(map(_is_float, flat))}")
@@ -811,8 +822,11 @@ def small_scene() -> dict:
 def float32_frames(spec: dict, states: dict, scenes: dict, workdir: Path) -> dict:
     """Run `FLOAT32_CHILD` (`spec`: width, height, shadow_resolution, cases {label: frames};
     `states`: {label_frame_x|x_prev|time: array}; `scenes`: {label: the parent's scene}); returns
-    {(label, frame): (image, Frame, the child's scene in the parent's precision)}."""
-    np.savez(workdir / "states.npz", **states)
+    {(label, frame): (image, Frame, the child's scene (the parent's rounded to float32) in the
+    parent's precision)}."""
+    leaves = {f"{label}_scene_{i}": np.asarray(leaf) for label in spec["cases"]
+              for i, leaf in enumerate(float_leaves(scenes[label]))}
+    np.savez(workdir / "states.npz", **states, **leaves)
     env = dict(os.environ)
     env.pop("JAX_ENABLE_X64", None)
     proc = subprocess.run([sys.executable, "-c", FLOAT32_CHILD, str(workdir / "states.npz"), json.dumps(spec),

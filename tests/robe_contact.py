@@ -243,7 +243,12 @@ def performer_frames(performer, frames: int, frame_dt: float = 0.1):
     xs, _ = jax.jit(lambda c, m: costume_frames(c, m, frames=frames, frame_dt=frame_dt))(performer.costume,
                                                                                           performer.motion)
     step = round(frame_dt / performer.costume.dt) * performer.costume.dt
+    yield from meshes_at(performer, (ClothState(xs[f], xs[f], jnp.asarray((f + 1) * step, xs.dtype))
+                                     for f in range(frames)))
+
+
+def meshes_at(performer, states):
+    """The (body, robe) `ExportedMesh` of each of the robe's `states` (the body at its time)."""
     mesh_of = jax.jit(performer_mesh)
-    for f in range(frames):
-        state = ClothState(xs[f], xs[f], jnp.asarray((f + 1) * step, xs.dtype))
+    for state in states:
         yield exported_meshes(mesh_of(performer, state), performer)
