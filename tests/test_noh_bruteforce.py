@@ -22,7 +22,7 @@ pixel's luminance), and within `GLOW` pixels of a flame's mirror image or a refl
 floor's gloss: a mip filter there, a cone of rays here), the two may differ; everywhere else they
 must match. Tolerances from measurement at 120 x 80 (`python benchmarks/noh_reference.py`,
 benchmarks/RESULTS.md, Noh): relative RMS where they must match 0.81-0.90 % in float64 and
-0.84-0.90 % in float32 (the target: 2 %), where they may differ 11.8-12.4 %; the performer's
+0.82-0.91 % in float32 (the target: 2 %), where they may differ 11.8-12.4 %; the performer's
 pixels are the same set. The float32 child renders the parent's scene rounded to float32
 (`with_float_leaves`), whose values the float32 frame's reference shades.
 """
