@@ -762,7 +762,7 @@ def reference_inputs(scene, frame: int, new_state) -> Frame:
 
 # the float32 frames: rendered by a child Python without x64 (as users run), of the parent's scene
 # rounded to float32 (its robe unsettled until the parent's settled one replaces it), from the
-# float64 states the frames start from; it saves each image and the Frame of its own state and samples
+# float64 states the frames start from; it saves each image and the Frame of its state and samples
 FLOAT32_CHILD = textwrap.dedent("""
     import json, sys
     import numpy as np
@@ -778,8 +778,6 @@ FLOAT32_CHILD = textwrap.dedent("""
         scene = nr.case_scene(label, spec["width"], spec["height"], **nr.small_scene(), robe={"settle_steps": 0})
         count = sum(k.startswith(f"{label}_scene_") for k in data.files)
         scene = nr.with_float_leaves(scene, [data[f"{label}_scene_{i}"] for i in range(count)])
-        for i, leaf in enumerate(nr.float_leaves(scene)):
-            out[f"{label}_scene_{i}"] = np.asarray(leaf)
         for f in frames:
             x, xp, t = (data[f"{label}_{f}_{k}"] for k in ("x", "x_prev", "time"))
             state = ClothState(*(jax.numpy.asarray(a, jax.numpy.float32) for a in (x, xp, t)))
@@ -803,8 +801,7 @@ def float_leaves(scene) -> list:
 
 def with_float_leaves(scene, leaves: list):
     """`scene` with its floating-point arrays replaced by `leaves` (cast to each array's dtype):
-    the parent's scene in the float32 child, and back, the scene rounded to float32 in the
-    parent's precision, which the reference of a float32 frame shades."""
+    the parent's scene in the float32 child."""
     flat, tree = jax.tree_util.tree_flatten(scene)
     if len(leaves) != sum(map(_is_float, flat)):
         raise ValueError(f"{len(leaves)} arrays for a scene of {sum(map(_is_float, flat))}")
@@ -822,8 +819,8 @@ def small_scene() -> dict:
 def float32_frames(spec: dict, states: dict, scenes: dict, workdir: Path) -> dict:
     """Run `FLOAT32_CHILD` (`spec`: width, height, shadow_resolution, cases {label: frames};
     `states`: {label_frame_x|x_prev|time: array}; `scenes`: {label: the parent's scene}); returns
-    {(label, frame): (image, Frame, the child's scene (the parent's rounded to float32) in the
-    parent's precision)}."""
+    {(label, frame): (image, Frame, the scene the child rendered: the parent's rounded to float32,
+    in the parent's precision)}."""
     leaves = {f"{label}_scene_{i}": np.asarray(leaf) for label in spec["cases"]
               for i, leaf in enumerate(float_leaves(scenes[label]))}
     np.savez(workdir / "states.npz", **states, **leaves)
@@ -837,8 +834,8 @@ def float32_frames(spec: dict, states: dict, scenes: dict, workdir: Path) -> dic
     data = np.load(workdir / "float32.npz")
     out = {}
     for label, frames in spec["cases"].items():
-        count = sum(k.startswith(f"{label}_scene_") for k in data.files)
-        scene = with_float_leaves(scenes[label], [data[f"{label}_scene_{i}"] for i in range(count)])
+        scene = scenes[label]
+        scene = with_float_leaves(scene, [np.asarray(leaf, np.float32) for leaf in float_leaves(scene)])
         for f in frames:
             fields = {k: np.asarray(data[f"{label}_{f}_{k}"]) for k in Frame.__dataclass_fields__}
             fields = {k: (v.astype(np.float64) if v.dtype.kind == "f" else v) for k, v in fields.items()}
