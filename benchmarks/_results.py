@@ -15,7 +15,10 @@ they name the row: keep them stable), `measured` (the figure) and `status` (the 
 optional. The file
 `benchmarks/results/<name>.json` gets the rows plus the date, the command line, the CPU
 (`cpu_description`: model and vector extension) and the machine load (`os.getloadavg`, the
-machine is shared) at the time of writing. With `quick=True`, or when
+machine is shared) at the time of writing. A script that ran on an accelerator (JAX's default backend
+not the CPU, e.g. `benchmarks/gpu_check.sh`) writes results/<name>_<backend>.json instead, each row's
+target marked with the device and the device named before the host CPU: a GPU figure never replaces
+a CPU one. With `quick=True`, or when
 the environment variable BENCH_NO_RESULTS is set (`run_all.py --quick` sets it), nothing is
 written: smoke runs never overwrite measured figures, unless BENCH_RESULTS_DIR names another
 directory (`run_all.py --quick` sets it to a scratch directory and checks what lands there), where
@@ -62,6 +65,15 @@ def cpu_description() -> str:
     return f"{model} ({names[widest]})" if widest else model
 
 
+def accelerator() -> str | None:
+    """The accelerator the script's JAX computes on, e.g. 'NVIDIA H200 (JAX gpu)'; None on the CPU backend or
+    when the script has not imported JAX."""
+    jax = sys.modules.get("jax")
+    if jax is None or jax.default_backend() == "cpu":
+        return None
+    return f"{jax.devices()[0].device_kind} (JAX {jax.default_backend()})"
+
+
 def write_results(name: str, rows: list[dict], *, quick: bool = False, update: bool = False) -> Path | None:
     """Write `rows` (the script's headline rows, see the module docstring) to results/<name>.json;
     `update`: replace only the rows of the same targets in an existing file (a script's rerun of
@@ -76,6 +88,10 @@ def write_results(name: str, rows: list[dict], *, quick: bool = False, update: b
     if not redirect and (quick or os.environ.get("BENCH_NO_RESULTS")):
         return None
     directory = Path(redirect) if redirect else RESULTS_DIR
+    device, cpu = accelerator(), cpu_description()
+    if device:  # its own file and marked rows: the targets are stated for 2 CPU cores
+        name, cpu = f"{name}_{sys.modules['jax'].default_backend()}", f"{device}, host {cpu}"
+        rows = [{**row, "target": f"{row['target']} [on {device.split(' (')[0]}]"} for row in rows]
     script = f"benchmarks/{Path(sys.argv[0]).name}"  # the one that ran: noh_frame.py --moving writes noh_frame_moving
     record = {
         "script": script,
@@ -83,7 +99,7 @@ def write_results(name: str, rows: list[dict], *, quick: bool = False, update: b
         "date_utc": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M"),
         "load_average_1_5_15": [round(x, 2) for x in os.getloadavg()],
         "cpu_count": os.cpu_count(),
-        "cpu": cpu_description(),
+        "cpu": cpu,
         "rows": rows,
     }
     directory.mkdir(exist_ok=True)

@@ -145,3 +145,22 @@ def test_write_results_update_replaces_only_the_rerun_rows(tmp_path, monkeypatch
         _results.write_results("x", [{"area": "nowhere", "target": "b", "measured": "3", "status": "met"}])
     rec = json.loads((tmp_path / "x.json").read_text())
     assert [(r["target"], r["measured"], "run" in r) for r in rec["rows"]] == [("a", "1", False), ("b", "3", True)]
+
+
+def test_write_results_on_an_accelerator_keeps_the_cpu_rows(tmp_path, monkeypatch):
+    """A run on a GPU writes its own file, each row marked with the device, the device named before the host."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import types
+
+    import _results
+
+    gpu = types.SimpleNamespace(default_backend=lambda: "gpu",
+                                devices=lambda: [types.SimpleNamespace(device_kind="NVIDIA H200")])
+    monkeypatch.setitem(sys.modules, "jax", gpu)
+    monkeypatch.setenv("BENCH_RESULTS_DIR", str(tmp_path))
+    path = _results.write_results("x", [{"area": "shafts", "target": "a frame <= 40 ms", "measured": "2 ms",
+                                         "status": "met"}])
+    assert path == tmp_path / "x_gpu.json" and not (tmp_path / "x.json").exists()
+    rec = json.loads(path.read_text())
+    assert rec["cpu"] == f"NVIDIA H200 (JAX gpu), host {_results.cpu_description()}"
+    assert rec["rows"][0]["target"] == "a frame <= 40 ms [on NVIDIA H200]"
