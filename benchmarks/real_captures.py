@@ -20,7 +20,8 @@ Each object, in a child process of its own:
    (mean angular error over the mask);
 2. where the time goes, in process: the merge, compilation (a cold fit minus a warm one), the
    material pass (`fitting.engine.estimate_table`, warm), the texel solves (the warm fit minus the
-   material pass), the rest of the command (ingest, pyramid, EXR and PNG writing, start-up);
+   material pass), the rest of the command (start-up, pyramid, EXR and PNG writing: its wall time
+   less the fit and the ingest its btf.json records);
 3. K-fold light cross-validation (`fitting.crossval`, light i in fold i mod 6: each light held out
    once) of the default method and of the plain fit: per fold the held-out relative RMS against a
    least-squares Lambertian fit of the same lights, and the normals of each fold's fit.
@@ -151,8 +152,8 @@ def run_object(name: str, work: Path, *, quick: bool, stride: int = 1) -> dict:
                        "texel_solves_cpu_s": round(warm_cpu - table_cpu, 2), "warm_fit_s": round(warm, 2),
                        "warm_fit_cpu_s": round(warm_cpu, 2), "plain_warm_fit_s": round(plain_warm, 2),
                        "plain_warm_fit_cpu_s": round(plain_cpu, 2), "cold_fit_cpu_s": round(cold_cpu, 2)}
-        if stride == 1:   # the command fitted these texels
-            out["time"]["rest_of_command_s"] = round(command["wall_s"] - cold, 2)
+        # the command's own clock: start-up, pyramid and writing are what its fit and ingest leave
+        out["time"]["rest_of_command_s"] = round(command["wall_s"] - command["fit_s"] - (command["ingest_s"] or 0), 2)
     folds = QUICK_FOLDS if quick else FOLDS
     for method, settings in (("default", default), ("plain", plain)) if not quick else (("default", default),):
         cv = cross_validate(obs, settings, folds=folds, normals=truth, progress=False)
