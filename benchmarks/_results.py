@@ -65,13 +65,13 @@ def cpu_description() -> str:
     return f"{model} ({names[widest]})" if widest else model
 
 
-def accelerator() -> str | None:
-    """The accelerator the script's JAX computes on, e.g. 'NVIDIA H200 (JAX gpu)'; None on the CPU backend or
-    when the script has not imported JAX."""
+def accelerator() -> tuple[str, str] | None:
+    """(device, backend) the script's JAX computes on, e.g. ('NVIDIA H200', 'gpu'); None on the CPU
+    backend or when the script has not imported JAX."""
     jax = sys.modules.get("jax")
     if jax is None or jax.default_backend() == "cpu":
         return None
-    return f"{jax.devices()[0].device_kind} (JAX {jax.default_backend()})"
+    return jax.devices()[0].device_kind, jax.default_backend()
 
 
 def write_results(name: str, rows: list[dict], *, quick: bool = False, update: bool = False) -> Path | None:
@@ -88,10 +88,11 @@ def write_results(name: str, rows: list[dict], *, quick: bool = False, update: b
     if not redirect and (quick or os.environ.get("BENCH_NO_RESULTS")):
         return None
     directory = Path(redirect) if redirect else RESULTS_DIR
-    device, cpu = accelerator(), cpu_description()
-    if device:  # its own file and marked rows: the targets are stated for 2 CPU cores
-        name, cpu = f"{name}_{sys.modules['jax'].default_backend()}", f"{device}, host {cpu}"
-        rows = [{**row, "target": f"{row['target']} [on {device.split(' (')[0]}]"} for row in rows]
+    cpu, on = cpu_description(), accelerator()
+    if on:  # its own file and marked rows: the targets are stated for 2 CPU cores
+        device, backend = on
+        name, cpu = f"{name}_{backend}", f"{device} (JAX {backend}), host {cpu}"
+        rows = [{**row, "target": f"{row['target']} [on {device}]"} for row in rows]
     script = f"benchmarks/{Path(sys.argv[0]).name}"  # the one that ran: noh_frame.py --moving writes noh_frame_moving
     record = {
         "script": script,
