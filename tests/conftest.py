@@ -1,20 +1,37 @@
 """Test configuration in the style of optimistix: float64 references, no silent rank or dtype
 promotion, warnings are errors (pyproject.toml).
 
-One persistent compilation cache for the whole run (every xdist worker, and through the
-environment every command, notebook kernel and benchmark script the tests start): the same
-program compiled by two processes is compiled once. It starts empty, as on a fresh CI runner, and
-lives in the temporary directory of this run only; tests that check the cache itself set their own."""
+One persistent compilation cache for every run on this machine (every xdist worker, and through
+the environment every command, notebook kernel and benchmark script the tests start): the same
+program compiled by two processes, or by two runs, is compiled once, so a run between edits
+compiles only what the edit changed (`_compile_cache`). A fresh CI runner starts it empty; to time
+a run as one, point $JAX_COMPILATION_CACHE_DIR at an empty directory. Tests that check the cache
+itself set their own."""
 
 import gc
+import hashlib
 import os
-import tempfile
+import platform
 from pathlib import Path
 
+
+def _compile_cache() -> Path:
+    """$XDG_CACHE_HOME/jaxrender-tests-<CPU> (~/.cache by default): one directory per kind of CPU
+    (its model and instruction-set flags), so that a home directory shared between machines never
+    offers one a program compiled for another's instructions (JAX would reject it, loudly). It
+    grows by what each edit recompiles (a full run from empty: about 150 MB); delete it at will."""
+    try:
+        info = Path("/proc/cpuinfo").read_text()
+        cpu = next((line for line in info.splitlines() if line.startswith("model name")), "")
+        cpu += next((line for line in info.splitlines() if line.startswith("flags")), "")
+    except OSError:
+        cpu = ""
+    key = hashlib.sha256(f"{platform.machine()} {platform.processor()} {cpu}".encode()).hexdigest()[:12]
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / f"jaxrender-tests-{key}"
+
+
 os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
-_RUN = os.environ.get("PYTEST_XDIST_TESTRUNUID") or f"pid{os.getpid()}"
-_CACHE = Path(tempfile.gettempdir()) / f"jaxrender-tests-jax-cache-{_RUN}"
-os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(_CACHE))
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(_compile_cache()))
 # every program, however quick to compile: the commands and scripts the tests start compile the
 # same few hundred small programs each (measured: a Noh benchmark's second run 29 s CPU with them
 # cached, 44 s with only those over a second)
@@ -27,7 +44,8 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
-# The inner loop (`python -m pytest -m quick -n 2`, two to three minutes on 2 cores): every area's kernels
+# The inner loop (`python -m pytest -m quick -n 2`, two to three minutes on 2 cores from an empty
+# compilation cache, one to one and a half once the cache holds its programs): every area's kernels
 # and file formats against their references, without the end-to-end commands, notebooks, brute-force
 # frames and benchmark runs that make up most of the full suite's time.
 QUICK_MODULES = {
