@@ -12,14 +12,16 @@ import gc
 import hashlib
 import os
 import platform
+import tempfile
 from pathlib import Path
 
 
 def _compile_cache() -> Path:
-    """$XDG_CACHE_HOME/jaxrender-tests-<CPU> (~/.cache by default): one directory per kind of CPU
-    (its model and instruction-set flags), so that a home directory shared between machines never
-    offers one a program compiled for another's instructions (JAX would reject it, loudly). It
-    grows by what each edit recompiles (a full run from empty: about 150 MB); delete it at will."""
+    """$XDG_CACHE_HOME/jaxrender-tests-<CPU> (~/.cache by default; the temporary directory where
+    that cannot be written): one directory per kind of CPU (its model and instruction-set flags),
+    so that a home directory shared between machines never offers one a program compiled for
+    another's instructions (JAX would reject it, loudly). It grows by what each edit recompiles (a
+    full run from empty: about 150 MB); delete it at will."""
     try:
         info = Path("/proc/cpuinfo").read_text()
         cpu = next((line for line in info.splitlines() if line.startswith("model name")), "")
@@ -27,11 +29,20 @@ def _compile_cache() -> Path:
     except OSError:
         cpu = ""
     key = hashlib.sha256(f"{platform.machine()} {platform.processor()} {cpu}".encode()).hexdigest()[:12]
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / f"jaxrender-tests-{key}"
+    for base in (os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache", tempfile.gettempdir()):
+        path = Path(base) / f"jaxrender-tests-{key}"
+        try:  # a home directory one cannot write to: the temporary directory instead
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            continue
+        if os.access(path, os.W_OK):
+            return path
+    return path
 
 
 os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
-os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(_compile_cache()))
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = str(_compile_cache())
 # every program, however quick to compile: the commands and scripts the tests start compile the
 # same few hundred small programs each (measured: a Noh benchmark's second run 29 s CPU with them
 # cached, 44 s with only those over a second)
