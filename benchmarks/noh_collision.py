@@ -112,15 +112,15 @@ def main() -> None:
     chosen = [m for m in args.motions.split(",") if m]
     if not chosen or set(chosen) - set(MOTIONS) or args.perturb < 0:
         parser.error(f"--motions: some of {', '.join(MOTIONS)}; --perturb: >= 0")
-    motions = [("built-in dance", noh_dance(), 0.5 if args.quick else 6.0)]
+    wanted = {MOTIONS[m] for m in chosen}
+    motions = [("built-in dance", noh_dance(), 0.5 if args.quick else 6.0)] if "built-in dance" in wanted else []
     for label, name in (("captured dance", CAPTURED),) if args.quick else OTHERS:
-        bvh = read_bvh(MOCAP / name)
-        whole = bvh.motion.shape[0] * bvh.frame_time
-        motions.append((label, bvh, 0.5 if args.quick else FRAME_DT * int(whole / FRAME_DT)))
+        if label in wanted:
+            bvh = read_bvh(MOCAP / name)
+            whole = bvh.motion.shape[0] * bvh.frame_time
+            motions.append((label, bvh, 0.5 if args.quick else FRAME_DT * int(whole / FRAME_DT)))
     runs = []
     for label, bvh, duration in motions:
-        if label not in [MOTIONS[m] for m in chosen]:
-            continue
         performer = dance_performer(bvh, duration=duration)   # dressed and settled once
         run = measure(label, performer, duration)
         run["perturbed_through"] = [measure(label, perturbed(performer, seed), duration)["through_total"]
