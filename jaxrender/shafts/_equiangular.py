@@ -49,6 +49,7 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, Bool, Float
 
 from ..fusion import materialize
@@ -247,7 +248,7 @@ def map_active_runs(fn, active: Bool[Array, " R"], args, *, chunk_runs: int, int
 
     Reverse mode is written out (`_chunks`): a second scan over the same chunks recomputes each one
     and pulls its cotangent back (`jax.vjp`), adding into the cotangents of `args` and of the
-    values `fn` closes over. Differentiating the scan itself would store, per chunk, a copy of
+    values `fn` closes over, of those being differentiated only (symbolic zeros tell which). Differentiating the scan itself would store, per chunk, a copy of
     everything `fn` reads (JAX forwards the inputs of a skippable chunk through the `cond` as
     per-iteration residuals): 43 copies of the frame's rays and maps per light at 720 x 480."""
     n_runs = active.shape[0]
@@ -284,37 +285,65 @@ def _chunks(fn, n_runs, plan, args, consts, into):
     return jax.lax.scan(step, into, (first, runs))[0]
 
 
+class _Perturbed(eqx.Module):
+    """Which leaves of (args, consts) are differentiated (static: carried through the residuals)."""
+
+    mask: tuple[bool, ...] = eqx.field(static=True)
+
+
 def _chunks_fwd(fn, n_runs, plan, args, consts, into):
-    return _chunks(fn, n_runs, plan, args, consts, into), (plan, args, consts)
+    def value(tree):
+        return jax.tree_util.tree_map(lambda p: p.value, tree)
+
+    perturbed = _Perturbed(tuple(p.perturbed for p in jax.tree_util.tree_leaves((args, consts))))
+    plan, args, consts = value(plan), value(args), value(consts)
+    return _chunks(fn, n_runs, plan, args, consts, value(into)), (plan, args, consts, perturbed)
 
 
 def _chunks_bwd(fn, n_runs, res, g):
-    plan, args, consts = res
+    """Pulls back only the differentiated leaves of (args, consts): a constant's cotangent (a light
+    map's texels, the rays' directions) would cost a scatter per chunk, for nothing."""
+    plan, args, consts, perturbed = res
     count, runs, first = plan
     per_chunk = runs.shape[1]
+    leaves, tree = jax.tree_util.tree_flatten((args, consts))
+    n_args = len(jax.tree_util.tree_leaves(args))
+    wrt = [i for i, p in enumerate(perturbed.mask) if p]
+    if isinstance(g, SymbolicZero) or not wrt:
+        return None, jax.tree_util.tree_map(lambda _: None, args), jax.tree_util.tree_map(lambda _: None, consts), None
 
     def step(carry, xs):
         start, ids = xs
 
         def pull(carry):
-            d_args, d_consts = carry
             valid = _chunk_valid(start, count, per_chunk)
             target = jnp.where(valid, ids, n_runs)
-            sub = jax.tree_util.tree_map(lambda a: a[ids], args)
-            _, vjp = jax.vjp(lambda sub, consts: fn(valid, *sub, *consts), sub, consts)
-            g_rows = g.at[target].get(mode="fill", fill_value=0)
-            d_sub, d_c = vjp(g_rows)
-            d_args = jax.tree_util.tree_map(lambda d, x: d.at[target].add(x, mode="drop"), d_args, d_sub)
-            return d_args, jax.tree_util.tree_map(jnp.add, d_consts, d_c)
+            sub = [x[ids] if i < n_args else x for i, x in enumerate(leaves)]
+
+            def chunk_fn(*diff):
+                both = list(sub)
+                for i, x in zip(wrt, diff):
+                    both[i] = x
+                chunk_args, chunk_consts = jax.tree_util.tree_unflatten(tree, both)
+                return fn(valid, *chunk_args, *chunk_consts)
+
+            _, vjp = jax.vjp(chunk_fn, *(sub[i] for i in wrt))
+            pulled = vjp(g.at[target].get(mode="fill", fill_value=0))
+            return tuple(c.at[target].add(d, mode="drop") if i < n_args else c + d
+                         for i, c, d in zip(wrt, carry, pulled))
 
         return jax.lax.cond(start < count, pull, lambda carry: carry, carry), None
 
-    zeros = jax.tree_util.tree_map(jnp.zeros_like, (args, consts))
-    (d_args, d_consts), _ = jax.lax.scan(step, zeros, (first, runs))
+    zeros = tuple(jnp.zeros_like(leaves[i]) for i in wrt)
+    pulled, _ = jax.lax.scan(step, zeros, (first, runs))
+    out = [None] * len(leaves)
+    for i, d in zip(wrt, pulled):
+        out[i] = d
+    d_args, d_consts = jax.tree_util.tree_unflatten(tree, out)
     return None, d_args, d_consts, g
 
 
-_chunks.defvjp(_chunks_fwd, _chunks_bwd)
+_chunks.defvjp(_chunks_fwd, _chunks_bwd, symbolic_zeros=True)
 
 
 def active_rays_map(scatter, dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"], t1: Float[Array, "*B"], *,
