@@ -248,9 +248,10 @@ def map_active_runs(fn, active: Bool[Array, " R"], args, *, chunk_runs: int, int
 
     Reverse mode is written out (`_chunks`): a second scan over the same chunks recomputes each one
     and pulls its cotangent back (`jax.vjp`), adding into the cotangents of `args` and of the
-    values `fn` closes over, of those being differentiated only (symbolic zeros tell which). Differentiating the scan itself would store, per chunk, a copy of
-    everything `fn` reads (JAX forwards the inputs of a skippable chunk through the `cond` as
-    per-iteration residuals): 43 copies of the frame's rays and maps per light at 720 x 480."""
+    values `fn` closes over, of those being differentiated only (symbolic zeros tell which).
+    Differentiating the scan itself would store, per chunk, a copy of everything `fn` reads (JAX
+    forwards the inputs of a skippable chunk through the `cond` as per-iteration residuals): 43
+    copies of the frame's rays and maps per light at 720 x 480."""
     n_runs = active.shape[0]
     per_chunk = int(max(1, min(chunk_runs, n_runs)))
     n_chunks = -(-n_runs // per_chunk)
