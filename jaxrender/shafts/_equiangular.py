@@ -310,8 +310,10 @@ def _chunks_bwd(fn, n_runs, res, g):
     leaves, tree = jax.tree_util.tree_flatten((args, consts))
     n_args = len(jax.tree_util.tree_leaves(args))
     wrt = [i for i, p in enumerate(perturbed.mask) if p]
-    if isinstance(g, SymbolicZero) or not wrt:
-        return None, jax.tree_util.tree_map(lambda _: None, args), jax.tree_util.tree_map(lambda _: None, consts), None
+    if isinstance(g, SymbolicZero):
+        g = None
+    if g is None or not wrt:  # nothing to pull back through the chunks (`into`'s cotangent is g)
+        return None, jax.tree_util.tree_map(lambda _: None, args), jax.tree_util.tree_map(lambda _: None, consts), g
 
     def step(carry, xs):
         start, ids = xs
