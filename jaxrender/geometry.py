@@ -19,12 +19,12 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from .maths import SHORT_AXIS, dot, normalize
 
-__all__ = ["Spheres", "Quads", "intersect_sphere", "intersect_quad", "cast_rays", "closest_hit",
-           "nearest_distance", "occluded", "bounding_points", "hit_point"]
+__all__ = ["Spheres", "Quads", "intersect_sphere", "intersect_quad", "cast_rays", "nearest_hits", "hit_attributes",
+           "closest_hit", "nearest_distance", "occluded", "bounding_points", "hit_point"]
 
 T_MIN = 1e-4  # ignore hits closer than this (self-intersection of rays leaving a surface)
 
@@ -217,56 +217,72 @@ def cast_rays(origins: Float[ArrayLike, "*B 3"], dirs: Float[ArrayLike, "*B 3"],
 
     `origins` may be a single point (3,) shared by all rays; `dirs` unit vectors. Returns
     (t, normal, albedo): t = inf and normal = albedo = 0 on a miss; the normal is the geometric
-    one (not flipped toward the ray). Same result as vmapping `closest_hit`, evaluated in a
-    structure-of-arrays layout for speed.
+    one (not flipped toward the ray). Same result as vmapping `closest_hit`: `nearest_hits`, then
+    `hit_attributes`.
     """
-    dirs = jnp.asarray(dirs)
-    origins = jnp.broadcast_to(jnp.asarray(origins, dtype=dirs.dtype), dirs.shape)
-    batch = dirs.shape[:-1]
-    fo, fd = origins.reshape((-1, 1, 3)), dirs.reshape((-1, 1, 3))
-    o, d = _soa(fo), _soa(fd)
-    best_t = jnp.full((fo.shape[0],), jnp.inf, dtype=dirs.dtype)
-    best_n = jnp.zeros((fo.shape[0], 3), dtype=dirs.dtype)
-    best_a = jnp.zeros((fo.shape[0], 3), dtype=dirs.dtype)
-    for group in prims:  # a handful of primitive kinds: unrolled
-        if group.count == 0:
-            continue
-        ts = _group_t(o, d, group, T_MIN)
-        # reductions, not `_nearest`: as fusion roots they store ts once for t, normal and albedo
-        i = jnp.argmin(ts, axis=1)
-        t = jnp.min(ts, axis=1)
-        closer = t < best_t
-        safe_t = jnp.where(jnp.isfinite(t), t, 0.0)
-        p = fo[:, 0, :] + safe_t[:, None] * fd[:, 0, :]
-        if isinstance(group, Spheres):
-            n = normalize(p - group.center[i])
-        else:
-            n = normalize(jnp.cross(group.u, group.v))[i]
-        best_t = jnp.where(closer, t, best_t)
-        best_n = jnp.where(closer[:, None], n, best_n)
-        best_a = jnp.where(closer[:, None], group.albedo[i], best_a)
-    return best_t.reshape(batch), best_n.reshape(batch + (3,)), best_a.reshape(batch + (3,))
+    t, index = nearest_hits(origins, dirs, prims)
+    return (t,) + hit_attributes(origins, dirs, t, index, prims)
 
 
-def nearest_distance(origins: Float[ArrayLike, "*B 3"], dirs: Float[ArrayLike, "*B 3"], prims: Primitives
-                     ) -> Float[Array, "*B"]:
-    """The t of `cast_rays` alone (inf on a miss), for shadow maps and reach tests. The nearest
-    primitive of a short group is found by comparing its columns one by one: XLA on CPU runs a min
-    over a short minor axis several times slower than these fused selects (the five-spot stage's
-    512^2 shadow maps: 48 -> 9 ms). `cast_rays` keeps the reductions: with normals and albedo to
-    pick as well, they store the hit distances once for all three."""
+def nearest_hits(origins: Float[ArrayLike, "*B 3"], dirs: Float[ArrayLike, "*B 3"], prims: Primitives
+                 ) -> tuple[Float[Array, "*B"], Int[Array, "*B"]]:
+    """(t, index) of every ray's nearest hit: t = inf and index = -1 on a miss; index counts the
+    primitives of the non-empty groups in order (`hit_attributes` reads it). Per ray, two values
+    instead of the seven of `cast_rays`: a caller that stores them (`fusion.materialize`) keeps XLA
+    from intersecting every primitive again inside each consumer of the normals and albedo (with
+    one primitive a group there is no reduction to store the distances)."""
     dirs = jnp.asarray(dirs)
     origins = jnp.broadcast_to(jnp.asarray(origins, dtype=dirs.dtype), dirs.shape)
     o, d = _soa(origins.reshape((-1, 1, 3))), _soa(dirs.reshape((-1, 1, 3)))
     best = jnp.full((o[0].shape[0],), jnp.inf, dtype=dirs.dtype)
-    for group in prims:
-        if group.count > 0:
-            best = jnp.minimum(best, _min_columns(_group_t(o, d, group, T_MIN)))
-    return best.reshape(dirs.shape[:-1])
+    index = jnp.full(best.shape, -1, jnp.int32)
+    offset = 0
+    for group in prims:  # a handful of primitive kinds: unrolled
+        if group.count == 0:
+            continue
+        ts = _group_t(o, d, group, T_MIN)
+        if ts.shape[1] > SHORT_AXIS:
+            columns = [(jnp.min(ts, axis=1), jnp.argmin(ts, axis=1).astype(jnp.int32) + offset)]
+        else:  # column by column, as `_min_columns` (and as fast)
+            columns = [(ts[:, j], offset + j) for j in range(ts.shape[1])]
+        for t, i in columns:
+            closer = t < best
+            best = jnp.where(closer, t, best)
+            index = jnp.where(closer, i, index)
+        offset += group.count
+    return best.reshape(dirs.shape[:-1]), index.reshape(dirs.shape[:-1])
+
+
+def hit_attributes(origins: Float[ArrayLike, "*B 3"], dirs: Float[ArrayLike, "*B 3"], t: Float[Array, "*B"],
+                   index: Int[Array, "*B"], prims: Primitives) -> tuple[Float[Array, "*B 3"], Float[Array, "*B 3"]]:
+    """(normal, albedo) at the hits `nearest_hits` found (0 where index is -1): a sphere's normal
+    points from its centre to the hit point, a quad's is normalize(u x v)."""
+    dirs = jnp.asarray(dirs)
+    groups = [g for g in prims if g.count > 0]
+    if not groups:
+        return jnp.zeros_like(dirs), jnp.zeros_like(dirs)
+    albedo = jnp.concatenate([g.albedo for g in groups]).astype(dirs.dtype)
+    sphere = jnp.concatenate([jnp.full((g.count,), isinstance(g, Spheres)) for g in groups])
+    # per primitive: a sphere's centre, a quad's unit normal
+    anchor = jnp.concatenate([g.center if isinstance(g, Spheres) else normalize(jnp.cross(g.u, g.v))
+                              for g in groups]).astype(dirs.dtype)
+    hit = (index >= 0)[..., None]
+    i = jnp.maximum(index, 0)
+    p = hit_point(origins, dirs, t, far=0.0)
+    normal = normalize(jnp.where(sphere[i][..., None], p - anchor[i], anchor[i]))
+    return jnp.where(hit, normal, 0.0), jnp.where(hit, albedo[i], 0.0)
+
+
+def nearest_distance(origins: Float[ArrayLike, "*B 3"], dirs: Float[ArrayLike, "*B 3"], prims: Primitives
+                     ) -> Float[Array, "*B"]:
+    """The t of `nearest_hits` alone (inf on a miss), for shadow maps and reach tests."""
+    return nearest_hits(origins, dirs, prims)[0]
 
 
 def _min_columns(ts: Float[Array, "R N"]) -> Float[Array, " R"]:
-    """min over axis 1: column by column up to SHORT_AXIS columns (see `nearest_distance`)."""
+    """min over axis 1: column by column up to SHORT_AXIS columns. XLA on CPU runs a min over a
+    short minor axis several times slower than these fused selects (the five-spot stage's 512^2
+    shadow maps: 48 -> 9 ms)."""
     if ts.shape[1] > SHORT_AXIS:
         return jnp.min(ts, axis=1)
     return functools.reduce(jnp.minimum, [ts[:, j] for j in range(ts.shape[1])])
