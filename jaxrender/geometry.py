@@ -266,11 +266,19 @@ def hit_attributes(origins: Float[ArrayLike, "*B 3"], dirs: Float[ArrayLike, "*B
     # per primitive: a sphere's centre, a quad's unit normal
     anchor = jnp.concatenate([g.center if isinstance(g, Spheres) else normalize(jnp.cross(g.u, g.v))
                               for g in groups]).astype(dirs.dtype)
-    hit = (index >= 0)[..., None]
-    i = jnp.maximum(index, 0)
+    if albedo.shape[0] <= SHORT_AXIS:  # a few primitives: selects, several times faster than gathers on CPU
+        albedo_at, anchor_at = jnp.zeros_like(dirs), jnp.zeros_like(dirs)
+        sphere_at = jnp.zeros(dirs.shape[:-1], bool)
+        for k in range(albedo.shape[0]):
+            this = index == k
+            albedo_at = jnp.where(this[..., None], albedo[k], albedo_at)
+            anchor_at = jnp.where(this[..., None], anchor[k], anchor_at)
+            sphere_at = this & sphere[k] | sphere_at
+    else:
+        i, hit = jnp.maximum(index, 0), (index >= 0)[..., None]
+        albedo_at, anchor_at, sphere_at = jnp.where(hit, albedo[i], 0.0), jnp.where(hit, anchor[i], 0.0), sphere[i]
     p = hit_point(origins, dirs, t, far=0.0)
-    normal = normalize(jnp.where(sphere[i][..., None], p - anchor[i], anchor[i]))
-    return jnp.where(hit, normal, 0.0), jnp.where(hit, albedo[i], 0.0)
+    return normalize(jnp.where(sphere_at[..., None], p - anchor_at, anchor_at)), albedo_at
 
 
 def nearest_distance(origins: Float[ArrayLike, "*B 3"], dirs: Float[ArrayLike, "*B 3"], prims: Primitives
