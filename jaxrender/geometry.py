@@ -262,23 +262,27 @@ def hit_attributes(origins: Float[ArrayLike, "*B 3"], dirs: Float[ArrayLike, "*B
     if not groups:
         return jnp.zeros_like(dirs), jnp.zeros_like(dirs)
     albedo = jnp.concatenate([g.albedo for g in groups]).astype(dirs.dtype)
-    sphere = jnp.concatenate([jnp.full((g.count,), isinstance(g, Spheres)) for g in groups])
-    # per primitive: a sphere's centre, a quad's unit normal
+    # per primitive: a sphere's centre and 1 / radius (its normal at p: (p - centre) / radius, no
+    # square root), a quad's unit normal and 0
     anchor = jnp.concatenate([g.center if isinstance(g, Spheres) else normalize(jnp.cross(g.u, g.v))
                               for g in groups]).astype(dirs.dtype)
+    inv_radius = jnp.concatenate([1.0 / g.radius if isinstance(g, Spheres) else jnp.zeros(g.count)
+                                  for g in groups]).astype(dirs.dtype)
     if albedo.shape[0] <= SHORT_AXIS:  # a few primitives: selects, several times faster than gathers on CPU
         albedo_at, anchor_at = jnp.zeros_like(dirs), jnp.zeros_like(dirs)
-        sphere_at = jnp.zeros(dirs.shape[:-1], bool)
+        inv_radius_at = jnp.zeros(dirs.shape[:-1], dirs.dtype)
         for k in range(albedo.shape[0]):
             this = index == k
             albedo_at = jnp.where(this[..., None], albedo[k], albedo_at)
             anchor_at = jnp.where(this[..., None], anchor[k], anchor_at)
-            sphere_at = this & sphere[k] | sphere_at
+            inv_radius_at = jnp.where(this, inv_radius[k], inv_radius_at)
     else:
         i, hit = jnp.maximum(index, 0), (index >= 0)[..., None]
-        albedo_at, anchor_at, sphere_at = jnp.where(hit, albedo[i], 0.0), jnp.where(hit, anchor[i], 0.0), sphere[i]
+        albedo_at, anchor_at = jnp.where(hit, albedo[i], 0.0), jnp.where(hit, anchor[i], 0.0)
+        inv_radius_at = jnp.where(hit[..., 0], inv_radius[i], 0.0)
     p = hit_point(origins, dirs, t, far=0.0)
-    return normalize(jnp.where(sphere_at[..., None], p - anchor_at, anchor_at)), albedo_at
+    sphere = (inv_radius_at > 0)[..., None]
+    return jnp.where(sphere, (p - anchor_at) * inv_radius_at[..., None], anchor_at), albedo_at
 
 
 def nearest_distance(origins: Float[ArrayLike, "*B 3"], dirs: Float[ArrayLike, "*B 3"], prims: Primitives
