@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 
 import equinox as eqx
 import jax
@@ -21,7 +22,8 @@ from jaxrender.maths import normalize, sum_short
 
 __all__ = ["GaussianMixture", "EMInfo", "em_fit", "weighted_log_likelihood", "moment_match", "lobe_slope_nodes",
            "em_texel", "em_texels", "moment_matched_texel", "moment_matched_texels", "mip_texel", "gather_children",
-           "em_downsample", "ONE_LOBE_TOLERANCE", "TWO_LOBE_GAIN", "DEFAULT_ORDER", "DEFAULT_ITERATIONS"]
+           "em_downsample", "compile_ahead", "ONE_LOBE_TOLERANCE", "TWO_LOBE_GAIN", "DEFAULT_ORDER",
+           "DEFAULT_ITERATIONS"]
 
 ONE_LOBE_TOLERANCE = 0.01  # relative ISE of the one-lobe summary above which a second lobe is considered
 TWO_LOBE_GAIN = 0.5        # the two-lobe fit must at least halve the one-lobe ISE
@@ -584,6 +586,46 @@ def _merge_level(pieces, hh: int, ww: int):
         (hh, ww) + xs[0].shape[1:]), *pieces)
 
 
+_AHEAD: dict[tuple, threading.Thread] = {}   # kernels being compiled ahead (`compile_ahead`), by their key
+
+
+def _kernel_key(order, iterations, tol, size, dtype) -> tuple:
+    return (order, iterations, tol, size, np.dtype(dtype).str)
+
+
+def compile_ahead(*, order: int = DEFAULT_ORDER, iterations: int = DEFAULT_ITERATIONS, tol: float | None = None,
+                  chunk: int = 4096, dtype=np.float32) -> threading.Thread:
+    """Start compiling, in a background thread, the one-lobe and two-lobe kernels that
+    `em_downsample(..., chunk=chunk, fixed=True)` of `dtype` levels calls, and return the thread
+    at once (the same thread for the same kernels while it lives).
+    XLA compiles without holding the GIL: a pyramid built after a long computation (a fit, whose
+    own compilation and solves leave a core free at times) finds its kernels compiled or waits only
+    for the rest. `em_downsample` waits for a pending compilation of its kernels before calling
+    them, so they are never compiled twice."""
+    key = _kernel_key(order, iterations, tol, chunk, dtype)
+    if key in _AHEAD:
+        return _AHEAD[key]
+    zero = np.zeros((1, 1), dtype)
+    lobe = Lobe(np.zeros((1, 1, 3), dtype), np.zeros((1, 1, 3), dtype), zero, zero)
+    level = BTFTexel(np.zeros((1, 1, 3), dtype), lobe, lobe, zero)
+    shapes = [jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), _split_level(level, chunk, one)[0])
+              for one in (True, False)]
+
+    def compile_both():
+        try:
+            for lobes, rho_d in shapes:
+                _em_blocks_jit.lower(lobes, rho_d, order, iterations, tol, 2).compile()
+        except Exception:  # noqa: BLE001 - the call itself compiles again and reports what fails
+            pass
+
+    # not a daemon: a process that ends (an error, Ctrl-C) waits for the compilation instead of
+    # finalizing the interpreter under it
+    thread = threading.Thread(target=compile_both, name="em-compile-ahead")
+    _AHEAD[key] = thread
+    thread.start()
+    return thread
+
+
 def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: int = DEFAULT_ITERATIONS,
                   tol: float | None = None, chunk: int = 4096, fixed: bool = False) -> tuple[BTFTexel, EMInfo]:
     """The next pyramid level of an `H W` BTFTexel level: `ceil(H/2) ceil(W/2)`.
@@ -606,8 +648,12 @@ def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: in
     h, w = level.weight.shape
     hh, ww = -(-h // 2), -(-w // 2)
     one_lobe = not bool(np.any(np.asarray(level.weight)))   # e.g. level 0 of a fit: the cheaper kernel
+    size = chunk if fixed else _chunk_size(hh * ww, chunk)
+    ahead = _AHEAD.get(_kernel_key(order, iterations, tol, size, level.weight.dtype))
+    if ahead is not None:
+        ahead.join()
     pieces = [_em_blocks_jit(lobes, rho_d, order, iterations, tol, 2)   # dispatched asynchronously
-              for lobes, rho_d in _split_level(level, chunk if fixed else _chunk_size(hh * ww, chunk), one_lobe)]
+              for lobes, rho_d in _split_level(level, size, one_lobe)]
     return _merge_level(tuple(pieces), hh, ww)
 
 

@@ -31,6 +31,7 @@ from .engine import FitResult, TexelSource, fit_source, local_chunks
 from .hdr import Observations
 from .ingest import DEFAULT_MEMORY_GB, ingest_capture, repair_store
 from .lm import TexelFit
+from .pyramid import compile_pyramid_ahead
 from .settings import FitSettings
 from .store import DEFAULT_STORE_DTYPE, ObservationStore, StoreDamaged, is_store, open_store
 from .writer import PARTIAL, begin_output, write_fit
@@ -65,6 +66,8 @@ def fit_observations(obs: Observations, btf_dir: str | os.PathLike, settings: Fi
     source = TexelSource.of_observations(obs, btf_dir)
     with output_lock(btf_dir):
         begin_output(btf_dir)
+        if pyramid:
+            compile_pyramid_ahead()   # while the fit runs
         t0, c0 = time.perf_counter(), time.process_time()
         result = fit_source(source, settings, partial_dir=btf_dir / PARTIAL, progress=progress)
         return write_fit(btf_dir, result, settings, pyramid=pyramid, seconds=time.perf_counter() - t0,
@@ -114,6 +117,8 @@ def _store_to_btf(store: ObservationStore, btf_dir: Path, settings: FitSettings,
                   progress, meta: dict | None = None) -> Path:
     """`fit_store` with BTF_DIR's lock held: repair what the file listing shows damaged, fit (and
     repair what the chunks' reads find, resuming from the checkpoint), write."""
+    if pyramid:
+        compile_pyramid_ahead()   # while the fit runs
     t0, c0 = time.perf_counter(), time.process_time()
     damage = None   # first: what the file listing shows
     for attempt in range(MAX_REPAIRS + 1):

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -26,11 +27,12 @@ from jaxrender.brdf import BTFTexel
 from jaxrender.io import MASK_CHANNEL, InputError, output_lock, read_btf, write_btf_levels
 from jaxrender.textures import downsample2
 
-from .em import DEFAULT_ITERATIONS, DEFAULT_ORDER, ONE_LOBE_TOLERANCE, TWO_LOBE_GAIN, em_downsample
+from .em import DEFAULT_ITERATIONS, DEFAULT_ORDER, ONE_LOBE_TOLERANCE, TWO_LOBE_GAIN, compile_ahead, em_downsample
 
 __all__ = ["build_pyramid", "pyramid_channels", "pyramid_levels", "pyramid_sizes", "banded_downsample",
-           "masked_average", "BAND_TEXELS"]
+           "masked_average", "compile_pyramid_ahead", "BAND_TEXELS", "EM_CHUNK"]
 
+EM_CHUNK = 4096      # texels per EM kernel call (`em_downsample(..., fixed=True)`)
 BAND_TEXELS = 65536  # output texels per band of a large one-lobe level (16 EM chunks of 4096)
 
 
@@ -43,7 +45,7 @@ def pyramid_sizes(size: tuple[int, int], *, levels: int | None = None) -> list[t
 
 
 def banded_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: int = DEFAULT_ITERATIONS,
-                      chunk: int = 4096, band_texels: int = BAND_TEXELS, fixed: bool = False):
+                      chunk: int = EM_CHUNK, band_texels: int = BAND_TEXELS, fixed: bool = False):
     """`em_downsample` of a large one-lobe level (a fit's level 0) in bands of output rows: the
     EM's buffers then grow with a band, not with the level (measured: ~0.7 kB per level-0 texel
     in one piece). Each band holds whole EM chunks of `chunk` texels at the same flat positions as
@@ -85,6 +87,12 @@ def masked_average(coarse: BTFTexel, mask: Float[Array, "H W"]) -> tuple[BTFTexe
     return scaled, (frac > 0).astype(mask.dtype)
 
 
+def compile_pyramid_ahead() -> threading.Thread:
+    """Start compiling the EM kernels of `pyramid_channels` (float32 levels, default order and
+    iterations) in the background (`fitting.em.compile_ahead`): a fit calls it before fitting."""
+    return compile_ahead(order=DEFAULT_ORDER, iterations=DEFAULT_ITERATIONS, chunk=EM_CHUNK, dtype=np.float32)
+
+
 def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = DEFAULT_ORDER,
                    iterations: int = DEFAULT_ITERATIONS, progress: Callable[[int], object] | None = None,
                    mask: Float[Array, "H W"] | None = None) -> tuple[list[BTFTexel], list[dict]]:
@@ -95,7 +103,7 @@ def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = 
     out, infos, masks = [], [], []
     current = level0
     for _ in range(1, count):  # a handful of levels: each one is a vmapped kernel call
-        current, info = banded_downsample(current, order=order, iterations=iterations, fixed=True)
+        current, info = banded_downsample(current, order=order, iterations=iterations, chunk=EM_CHUNK, fixed=True)
         if mask is not None:
             current, mask = masked_average(current, jnp.asarray(mask, current.rho_d.dtype))
             masks.append(mask)

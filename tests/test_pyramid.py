@@ -4,6 +4,7 @@ ordinary mip and than a one-lobe moment-matched level), and `build_pyramid` / `f
 write every channel of every level with btf.json last."""
 
 import json
+import logging
 import sys
 from pathlib import Path
 
@@ -11,7 +12,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fitting.em import _chunk_size, em_downsample, em_texels, gather_children, mip_texel, moment_matched_texels
+from fitting.em import (
+    _chunk_size,
+    compile_ahead,
+    em_downsample,
+    em_texels,
+    gather_children,
+    mip_texel,
+    moment_matched_texels,
+)
 from fitting.pyramid import build_pyramid, pyramid_levels
 from jaxrender import brdf
 from jaxrender.app.cli.programs import fitting_main
@@ -197,6 +206,30 @@ def test_em_downsample_chunk_sizes_agree_to_rounding():
     np.testing.assert_array_equal(np.asarray(whole.weight) > 0, np.asarray(parts.weight) > 0)
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(parts)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=2e-6)
+
+
+def test_compile_ahead_compiles_what_a_fixed_level_calls(caplog):
+    """After `compile_ahead`, downsampling a one-lobe level and a two-lobe level with `fixed=True`
+    compiles no EM kernel (JAX logs every compilation it starts, persistent-cache hits included)
+    and gives the levels a plain call gives; a setting not compiled ahead (other iterations) does
+    compile one."""
+    level0 = BTFTexel.from_channels(_level0((13, 11), 7))
+    compile_ahead(chunk=16, dtype=level0.weight.dtype).join()   # else its own compilations count
+
+    def kernels_compiled(fn):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING), jax.log_compiles(True):
+            out = fn()
+        return out, sum("Compiling jit(_em_blocks)" in r.getMessage() for r in caplog.records)
+
+    (level1, _), one = kernels_compiled(lambda: em_downsample(level0, chunk=16, fixed=True))
+    (level2, _), two = kernels_compiled(lambda: em_downsample(level1, chunk=16, fixed=True))
+    _, other = kernels_compiled(lambda: em_downsample(level0, chunk=16, fixed=True, iterations=7))
+    assert bool(jnp.any(level1.weight > 0)), "level 1 has two-lobe texels: level 2 needs the two-lobe kernel"
+    assert (one, two, other) == (0, 0, 1)
+    for got, plain in ((level1, em_downsample(level0, chunk=16)[0]), (level2, em_downsample(level1, chunk=16)[0])):
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(plain)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_build_pyramid_writes_every_channel_on_every_level_and_btf_json_last(tmp_path):
