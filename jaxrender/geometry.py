@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .fusion import materialize
 from .maths import SHORT_AXIS, dot, normalize
 
 __all__ = ["Spheres", "Quads", "intersect_sphere", "intersect_quad", "cast_rays", "nearest_hits", "hit_attributes",
@@ -217,20 +218,19 @@ def cast_rays(origins: Float[ArrayLike, "*B 3"], dirs: Float[ArrayLike, "*B 3"],
 
     `origins` may be a single point (3,) shared by all rays; `dirs` unit vectors. Returns
     (t, normal, albedo): t = inf and normal = albedo = 0 on a miss; the normal is the geometric
-    one (not flipped toward the ray). Same result as vmapping `closest_hit`: `nearest_hits`, then
-    `hit_attributes`.
+    one (not flipped toward the ray). Same result as vmapping `closest_hit`: `nearest_hits`, stored
+    once (`fusion.materialize`: else XLA intersects every primitive again inside each consumer of
+    the normals, albedo and hit points), then `hit_attributes`. Per-image code: under `vmap` the
+    store becomes a select that evaluates `nearest_hits` twice.
     """
-    t, index = nearest_hits(origins, dirs, prims)
+    t, index = materialize(nearest_hits, origins, dirs, prims)
     return (t,) + hit_attributes(origins, dirs, t, index, prims)
 
 
 def nearest_hits(origins: Float[ArrayLike, "*B 3"], dirs: Float[ArrayLike, "*B 3"], prims: Primitives
                  ) -> tuple[Float[Array, "*B"], Int[Array, "*B"]]:
     """(t, index) of every ray's nearest hit: t = inf and index = -1 on a miss; index counts the
-    primitives of the non-empty groups in order (`hit_attributes` reads it). Per ray, two values
-    instead of the seven of `cast_rays`: a caller that stores them (`fusion.materialize`) keeps XLA
-    from intersecting every primitive again inside each consumer of the normals and albedo (with
-    one primitive a group there is no reduction to store the distances)."""
+    primitives of the non-empty groups in order (`hit_attributes` reads it)."""
     dirs = jnp.asarray(dirs)
     origins = jnp.broadcast_to(jnp.asarray(origins, dtype=dirs.dtype), dirs.shape)
     o, d = _soa(origins.reshape((-1, 1, 3))), _soa(dirs.reshape((-1, 1, 3)))

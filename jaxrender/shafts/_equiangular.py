@@ -53,7 +53,7 @@ from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, Bool, Float
 
 from ..fusion import materialize
-from ..geometry import hit_attributes, hit_point, nearest_hits
+from ..geometry import cast_rays, hit_point
 from ..lights import SpotLight
 from ..maths import atan_nonneg, outer, sum_last
 from ._density import DepthVolume
@@ -386,9 +386,7 @@ def primary_hits(scene: ShaftsScene, dirs: Float[Array, "*B 3"] | None = None):
     along `dirs` (t = inf on a miss)."""
     eye = scene.camera.eye
     dirs = scene.camera.primary_rays() if dirs is None else dirs
-    # the nearest hits stored once: else every consumer of the normals and albedo intersects again
-    t_hit, index = materialize(nearest_hits, eye, dirs, scene.prims)
-    normals, albedo = hit_attributes(eye, dirs, t_hit, index, scene.prims)
+    t_hit, normals, albedo = cast_rays(eye, dirs, scene.prims)
     return dirs, t_hit, normals, albedo, hit_point(eye, dirs, t_hit, far=FAR)
 
 
