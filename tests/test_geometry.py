@@ -85,6 +85,24 @@ def test_cast_rays_equals_loop_of_closest_hit(jit):
     np.testing.assert_allclose(np.linalg.norm(np.asarray(n)[hit], axis=1), 1.0, atol=_TOL)
 
 
+def test_cast_rays_with_many_primitives_equals_closest_hit():
+    """Past SHORT_AXIS primitives `hit_attributes` gathers instead of selecting: 20 spheres and two
+    quads against the one-ray `closest_hit` (vmapped), misses included."""
+    o, d = _random_rays(300, 5)
+    rng = np.random.default_rng(6)
+    prims = (Spheres(rng.uniform(-1, 1, (20, 3)), rng.uniform(0.1, 0.3, 20), rng.uniform(0, 1, (20, 3))),
+             Quads([[0.0, -0.5, 0.0], [0.0, 0.0, -1.0]], [[2.0, 0.0, 0.0], [1.0, 0.0, 0.0]],
+                   [[0.0, 0.0, 2.0], [0.0, 1.0, 0.0]], [[0, 0, 1], [1, 1, 0]]))
+    t, n, a = jax.jit(cast_rays)(jnp.asarray(o), jnp.asarray(d), prims)
+    want = jax.jit(jax.vmap(closest_hit, in_axes=(0, 0, None)))(jnp.asarray(o), jnp.asarray(d), prims)
+    hit = np.isfinite(np.asarray(want[0]))
+    assert 10 < hit.sum() < len(o) - 10
+    np.testing.assert_array_equal(np.isfinite(np.asarray(t)), hit)
+    np.testing.assert_allclose(np.asarray(t)[hit], np.asarray(want[0])[hit], atol=_TOL)
+    for got, ref in ((n, want[1]), (a, want[2])):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(ref), atol=_TOL)
+
+
 @pytest.mark.parametrize("n_spheres", [3, 20])  # written-out column minimum, and jnp.min past SHORT_AXIS
 def test_nearest_distance_is_numpy_minimum_and_drives_occluded(n_spheres):
     o, d = _random_rays(300, 3)
