@@ -159,8 +159,7 @@ def render_adaptive(scene: ShaftsScene, *, samples: int = 24, map_taps: int = MA
     node_v = []
     for light, (scatter, reach) in zip(scene.lights, scatters):
         # stored: else XLA computes them inside `active_rays_map`'s pads, element by element (unvectorized)
-        t0, t1 = materialize(lambda s, li, d, t, r: cone_intervals(s, li, d, t, r), scene, light, node_dirs, node_t,
-                             reach)
+        t0, t1 = materialize(cone_intervals, scene, light, node_dirs, node_t, reach)
         node_v.append(active_rays_map(scatter, node_dirs, t0, t1, chunk=chunk))
     total = sum(node_v)
     threshold = tolerance * jax.lax.stop_gradient(jnp.sqrt(jnp.mean(total * total)))
