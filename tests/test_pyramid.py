@@ -212,9 +212,10 @@ def test_compile_ahead_compiles_what_a_fixed_level_calls(caplog):
     """After `compile_ahead`, downsampling a one-lobe level and a two-lobe level with `fixed=True`
     compiles no EM kernel (JAX logs every compilation it starts, persistent-cache hits included)
     and gives the levels a plain call gives; a setting not compiled ahead (other iterations) does
-    compile one."""
+    compile one. Iterations no other test uses: no kernel of them is in memory beforehand."""
     level0 = BTFTexel.from_channels(_level0((13, 11), 7))
-    compile_ahead(chunk=16, dtype=level0.weight.dtype).join()   # else its own compilations count
+    ahead = dict(chunk=16, iterations=11)
+    compile_ahead(**ahead, dtype=level0.weight.dtype).join()   # else its own compilations count
 
     def kernels_compiled(fn):
         caplog.clear()
@@ -222,12 +223,12 @@ def test_compile_ahead_compiles_what_a_fixed_level_calls(caplog):
             out = fn()
         return out, sum("Compiling jit(_em_blocks)" in r.getMessage() for r in caplog.records)
 
-    (level1, _), one = kernels_compiled(lambda: em_downsample(level0, chunk=16, fixed=True))
-    (level2, _), two = kernels_compiled(lambda: em_downsample(level1, chunk=16, fixed=True))
+    (level1, _), one = kernels_compiled(lambda: em_downsample(level0, **ahead, fixed=True))
+    (level2, _), two = kernels_compiled(lambda: em_downsample(level1, **ahead, fixed=True))
     _, other = kernels_compiled(lambda: em_downsample(level0, chunk=16, fixed=True, iterations=7))
     assert bool(jnp.any(level1.weight > 0)), "level 1 has two-lobe texels: level 2 needs the two-lobe kernel"
     assert (one, two, other) == (0, 0, 1)
-    for got, plain in ((level1, em_downsample(level0, chunk=16)[0]), (level2, em_downsample(level1, chunk=16)[0])):
+    for got, plain in ((level1, em_downsample(level0, **ahead)[0]), (level2, em_downsample(level1, **ahead)[0])):
         for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(plain)):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
