@@ -176,20 +176,38 @@ def surface_term(scene: ShaftsScene, points: Float[Array, "*B 3"], normals: Floa
     With a density grid the path lengths s and T become optical depths (integrals of d):
     `light_depth(light_index, points)` along the path from each light, `view_depth` along the
     view ray to the surface (both required then). `footprint`: the pixel's width at each point,
-    for light-map lookups at the mip level it needs (None: bilinear)."""
+    for light-map lookups at the mip level it needs (None: bilinear). The sum of `surface_light`
+    over the lights, through `surface_radiance`."""
+    total = sum(surface_light(scene, index, points, normals, visibility, quantize_bits=quantize_bits,
+                              light_depth=light_depth, footprint=footprint) for index in range(len(scene.lights)))
+    return surface_radiance(scene, albedo, surface_t, jnp.zeros_like(points) + total, view_depth=view_depth)
+
+
+def surface_light(scene: ShaftsScene, index: int, points: Float[Array, "*B 3"], normals: Float[Array, "*B 3"],
+                  visibility, *, quantize_bits: int = 0, light_depth=None,
+                  footprint: Float[Array, "*B"] | None = None) -> Float[Array, "*B 3"]:
+    """Light `index`'s term of `surface_term` at the points: I |cos| / s^2 exp(-rho kappa s) H (its
+    optical depth for s with `light_depth`); zero outside the light's cone (its falloff)."""
+    light = scene.lights[index]
+    I, s, w = light.radiant_intensity(points, quantize_bits=quantize_bits, footprint=footprint)
+    cos_i = jnp.abs(dot(w, normals))
+    s_safe = jnp.maximum(s, S_FLOOR)
+    H = visibility(index, points, normals, s)
+    tau = s if light_depth is None else light_depth(index, points)
+    scale = cos_i * H * jnp.exp(-scene.medium.sigma_t * tau) / (s_safe * s_safe)
+    return I * scale[..., None]
+
+
+def surface_radiance(scene: ShaftsScene, albedo: Float[Array, "*B 3"], surface_t: Float[Array, "*B"],
+                     lit: Float[Array, "*B 3"], *, view_depth: Float[Array, "*B"] | None = None
+                     ) -> Float[Array, "*B 3"]:
+    """The radiance toward the eye of surfaces lit by `lit` (the lights' `surface_light` summed):
+    albedo / pi * lit, attenuated along the view ray (its optical depth `view_depth` in a density
+    grid); 0 where the ray hits nothing (surface_t infinite)."""
     sigma = scene.medium.sigma_t
-    total = jnp.zeros_like(points)
-    for index, light in enumerate(scene.lights):
-        I, s, w = light.radiant_intensity(points, quantize_bits=quantize_bits, footprint=footprint)
-        cos_i = jnp.abs(dot(w, normals))
-        s_safe = jnp.maximum(s, S_FLOOR)
-        H = visibility(index, points, normals, s)
-        tau = s if light_depth is None else light_depth(index, points)
-        scale = cos_i * H * jnp.exp(-sigma * tau) / (s_safe * s_safe)
-        total = total + I * scale[..., None]
     hit = jnp.isfinite(surface_t)
     T = jnp.where(hit, surface_t, 0.0) if view_depth is None else jnp.where(hit, view_depth, 0.0)
-    radiance = albedo / jnp.pi * total * jnp.exp(-sigma * T)[..., None]
+    radiance = albedo / jnp.pi * lit * jnp.exp(-sigma * T)[..., None]
     return jnp.where(hit[..., None], radiance, 0.0)
 
 
