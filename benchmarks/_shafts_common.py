@@ -150,6 +150,22 @@ def timed(fn, *args, repeats: int = 3):
 timed.cpu = float("nan")
 
 
+def alternate(calls, repeats: int) -> list[tuple[float, float]]:
+    """(median wall s, median CPU s) of each (fn, args) in `calls` (compiled beforehand), run in
+    turn `repeats` rounds: the machine's speed drifts over minutes, and a ratio of two timings is
+    only fair when both were taken at the same moments."""
+    import jax
+
+    wall, cpu = [[] for _ in calls], [[] for _ in calls]
+    for _ in range(repeats):
+        for k, (fn, args) in enumerate(calls):
+            t0, c0 = time.perf_counter(), time.process_time()
+            jax.block_until_ready(fn(*args))
+            wall[k].append(time.perf_counter() - t0)
+            cpu[k].append(time.process_time() - c0)
+    return [(statistics.median(w), statistics.median(c)) for w, c in zip(wall, cpu)]
+
+
 def levels(img: np.ndarray, white: float = 1.0) -> np.ndarray:
     """Display levels 0..255 of a linear image (what an 8-bit frame buffer shows, unrounded)."""
     return np.clip(np.asarray(img, dtype=np.float64) / white, 0.0, 1.0) * 255.0

@@ -265,20 +265,25 @@ def frames(args, w, h, directory, repeats):
 
 
 def maps(args, w, h, directory, repeats, samples):
+    """The spot with each light map size; the sizes' frames timed interleaved (round after round),
+    so that the machine's speed, which drifts over minutes, weighs on every size alike."""
     sizes = (64, 256, 1024)
-    rows = []
+    rows, timed = [], []
     for n in sizes:
         scene = spot_scene(w, h, directory, n)
         ref = reference(f"spot_map{n}", scene, 64 if args.quick else args.ref_samples)
         fn = method_fn("adaptive", samples, parts=True)
         _, fog = fn(scene)
-        _, c, wall, cpu = frame_times(fn if args.quick else method_fn("adaptive", samples, parts=False), (scene,),
-                                      repeats)
-        rows.append(dict(n=n, err=rel(fog, ref), median_s=statistics.median(wall), cpu_s=cpu, compile_s=c,
-                         load=os.getloadavg()[0]))
-        print(f"  spot, {n}^2 light map, adaptive {samples} samples: err {100 * rows[-1]['err']:.2f} %  compile "
-              f"{c:.1f} s  wall {statistics.median(wall):.3f} s  cpu {cpu:.3f} s  load {os.getloadavg()[0]:.1f}",
-              flush=True)
+        fn = fn if args.quick else method_fn("adaptive", samples, parts=False)
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(scene))
+        rows.append(dict(n=n, err=rel(fog, ref), compile_s=time.perf_counter() - t0))
+        timed.append((fn, (scene,)))
+    for row, (wall, cpu) in zip(rows, C.alternate(timed, repeats)):
+        row.update(median_s=wall, cpu_s=cpu, load=os.getloadavg()[0])
+        print(f"  spot, {row['n']}^2 light map, adaptive {samples} samples: err {100 * row['err']:.2f} %  compile "
+              f"{row['compile_s']:.1f} s  wall {row['median_s']:.3f} s  cpu {row['cpu_s']:.3f} s  "
+              f"load {row['load']:.1f}", flush=True)
     spread = max(r["median_s"] for r in rows) / min(r["median_s"] for r in rows)
     text = "; ".join(f"{r['n']}^2 {1e3 * r['median_s']:.0f} ms wall {1e3 * r['cpu_s']:.0f} ms CPU "
                      f"{100 * r['err']:.2f} %" for r in rows)
@@ -312,20 +317,25 @@ def gradient(args, w, h, directory, repeats, save):
         def loss(p, with_params=with_params):
             return jnp.sum(weights * render_adaptive(with_params(p)))
 
-        _, c_f, wall_f, cpu_f = frame_times(jax.jit(loss), (p0,), repeats)
-        fwd = statistics.median(wall_f)
-        ratios = {}
+        forward = jax.jit(loss)
+        jax.block_until_ready(forward(p0))
+        ratios, forwards = {}, []
         for keys in [(k,) for k in p0 if k != "intensity"] + [tuple(p0)]:  # intensity: linear, in "all"
             def part(q, loss=loss, p0=p0):
                 return loss({**p0, **q})
 
-            _, c_g, wall_g, cpu_g = frame_times(jax.jit(jax.value_and_grad(part)), ({k: p0[k] for k in keys},),
-                                                repeats)
+            grad, q0 = jax.jit(jax.value_and_grad(part)), {k: p0[k] for k in keys}
+            t0 = time.perf_counter()
+            jax.block_until_ready(grad(q0))
+            c_g = time.perf_counter() - t0
+            (fwd, cpu_f), (wall_g, cpu_g) = C.alternate([(forward, (p0,)), (grad, (q0,))], repeats)
+            forwards.append(fwd)
             name = "all" if len(keys) > 1 else keys[0]
-            ratios[name] = (statistics.median(wall_g) / fwd, cpu_g / cpu_f)
-            table.append(f"| {label} | {name} | {fwd:.3f} | {statistics.median(wall_g):.3f} | "
+            ratios[name] = (wall_g / fwd, cpu_g / cpu_f)
+            table.append(f"| {label} | {name} | {fwd:.3f} | {wall_g:.3f} | "
                          f"{ratios[name][0]:.2f}x | {ratios[name][1]:.2f}x | {c_g:.0f} | {os.getloadavg()[0]:.1f} |")
             print("  " + table[-1], flush=True)
+        fwd = statistics.median(forwards)
         worst = max(ratios, key=lambda k: ratios[k][0])
         results.append(dict(area="shafts", target=f"gradient <= 5x forward for every parameter, {label}, {w}x{h}",
                             measured=", ".join(f"{k} {v[0]:.2f}x" for k, v in ratios.items())

@@ -80,12 +80,11 @@ def _to_image(x: Array, hc: int, wc: int, cell: int, height: int, width: int) ->
     return img.reshape((hc * cell, wc * cell) + x.shape[2:])[:height, :width]
 
 
-def _interp_weights(cell: int, dtype) -> Array:
+def _interp_weights(cell: int) -> np.ndarray:
     """(cell^2, 4) bilinear weights of the corners (top-left, top-right, bottom-left, bottom-right)."""
-    f = jnp.arange(cell, dtype=dtype) / cell
-    fy, fx = jnp.meshgrid(f, f, indexing="ij")
-    fy, fx = fy.reshape((-1,)), fx.reshape((-1,))
-    return jnp.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], axis=-1)
+    f = np.arange(cell) / cell
+    fy, fx = (g.reshape((-1,)) for g in np.meshgrid(f, f, indexing="ij"))
+    return np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], axis=-1)
 
 
 def _corners(nodes: Array) -> Array:
@@ -94,11 +93,31 @@ def _corners(nodes: Array) -> Array:
     return c.reshape((-1,) + c.shape[2:])
 
 
-def _lerp(weights: Array, corners: Array) -> Array:
-    """Bilinear interpolation inside each cell: (cell^2, 4) weights, (cells, 4, ...) corner values
-    -> (cells, cell^2, ...); written out (a dot product over 4 corners is slow on XLA's CPU)."""
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _lerp(cell: int, corners: Array) -> Array:
+    """Bilinear interpolation inside each cell of `cell` x `cell` pixels: (cells, 4, ...) corner
+    values -> (cells, cell^2, ...); written out (a dot product over 4 corners is slow on XLA's
+    CPU), and so is its transpose (`_lerp_bwd`)."""
+    weights = _interp_weights(cell)
     extra = (1,) * (corners.ndim - 2)
-    return sum(weights[None, :, k].reshape((1, -1) + extra) * corners[:, k:k + 1] for k in range(4))
+    return sum(jnp.asarray(weights[None, :, k].reshape((1, -1) + extra), corners.dtype) * corners[:, k:k + 1]
+               for k in range(4))
+
+
+def _lerp_fwd(cell, corners):
+    return _lerp(cell, corners), None
+
+
+def _lerp_bwd(cell, _, g):
+    """Each corner's cotangent, the weighted sum over the cell's pixels as cell^2 terms: XLA's
+    transpose of the broadcast reduces over the pixel axis, ~6x slower on CPU (a gradient of the
+    adaptive frame spent a tenth of its time there)."""
+    weights = _interp_weights(cell)
+    return (jnp.stack([sum(float(weights[p, k]) * g[:, p] for p in range(weights.shape[0]) if weights[p, k] != 0)
+                       for k in range(4)], axis=1),)
+
+
+_lerp.defvjp(_lerp_fwd, _lerp_bwd)
 
 
 def _bends(v: Array) -> Array:
@@ -149,9 +168,8 @@ def render_adaptive(scene: ShaftsScene, *, samples: int = 24, map_taps: int = MA
     node_t = materialize(lambda s, d: nearest_distance(s.camera.eye, d, s.prims), scene, node_dirs)
     node_t = jnp.where(jnp.isfinite(node_t), node_t, FAR)
 
-    weights = _interp_weights(cell, dtype)
     # silhouettes: a pixel's depth off the bilinear interpolation of its cell's corners' depths
-    lerp_t = _lerp(weights, _corners(jax.lax.stop_gradient(node_t)))
+    lerp_t = _lerp(cell, _corners(jax.lax.stop_gradient(node_t)))
     pixel_t = jax.lax.stop_gradient(frame.surface_t)
     jump = jnp.any(jnp.abs(pixel_t - lerp_t) > DEPTH_JUMP * jnp.minimum(pixel_t, lerp_t), axis=1)
 
@@ -165,7 +183,7 @@ def render_adaptive(scene: ShaftsScene, *, samples: int = 24, map_taps: int = MA
     threshold = tolerance * jax.lax.stop_gradient(jnp.sqrt(jnp.mean(total * total)))
 
     chunk_runs = max(1, chunk // (cell * cell))
-    image = frame.surface + _lerp(weights, _corners(total))
+    image = frame.surface + _lerp(cell, _corners(total))
     parts, refined = [], []
     for light, (scatter, reach), v in zip(scene.lights, scatters, node_v):
         v_fixed = jax.lax.stop_gradient(v)
@@ -181,11 +199,11 @@ def render_adaptive(scene: ShaftsScene, *, samples: int = 24, map_taps: int = MA
             live = jnp.repeat(valid, cell * cell)
             t0, t1 = jnp.where(live, t0, 0.0), jnp.where(live, t1, 0.0)
             exact = scatter(dirs.reshape((-1, 3)), t0, t1).reshape((n, cell * cell, 3))
-            return jnp.where(valid[:, None, None], exact - _lerp(weights, corners), 0.0)
+            return jnp.where(valid[:, None, None], exact - _lerp(cell, corners), 0.0)
 
         args = (frame.dirs, frame.surface_t, _corners(v))
         if return_parts:
-            own = map_active_runs(correction, flag, args, chunk_runs=chunk_runs, into=_lerp(weights, _corners(v)))
+            own = map_active_runs(correction, flag, args, chunk_runs=chunk_runs, into=_lerp(cell, _corners(v)))
             parts.append(_to_image(own, hc, wc, cell, height, width))
         else:
             image = map_active_runs(correction, flag, args, chunk_runs=chunk_runs, into=image)
