@@ -169,3 +169,41 @@ def test_chunk_loop_pulls_back_exactly_what_is_differentiated():
         got, want = jax.grad(chunked, argnums)(rows, const, into), jax.grad(dense, argnums)(rows, const, into)
         for k, g, w in zip(argnums, got, want):
             np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=_EXACT, atol=_EXACT, err_msg=str(k))
+
+
+def test_lit_surfaces_equal_every_point_and_their_gradients():
+    """The surfaces' pass evaluates each light only on the runs of pixels inside its cone
+    (`lit_surfaces`): the same image and gradients as every pixel (`surface_term`), with a light
+    map, a light whose cone misses the view, a last run cut by the image's end (60 x 39 pixels, runs
+    of 7: a run wholly in the falloff's outer ring must still be evaluated) and chunks smaller than
+    the lit runs."""
+    from jaxrender.shafts._equiangular import MAP_DETAIL, lit_surfaces, pixel_angle, primary_hits
+    from jaxrender.shafts._model import surface_light, surface_radiance, surface_term
+    from jaxrender.shafts._raymarch import surface_visibility
+    from jaxrender.shafts._scene import shadow_maps
+
+    base = _scene(width=60, height=39, light_map=_map(), shadow_map=64)
+    away = eqx.tree_at(lambda light: light.target, base.lights[0], jnp.asarray([0.0, 8.0, -3.0]))
+    scene = eqx.tree_at(lambda s: s.lights, base, [base.lights[0], away])
+    weights = jnp.asarray(np.random.default_rng(5).uniform(0.5, 1.5, (39, 60, 3)))
+
+    def surfaces(p, compact):
+        s = _with(scene, p)
+        _, t, normals, albedo, points = primary_hits(s)
+        visibility = surface_visibility(s, shadow_maps(s, resolution=64), "map")
+        footprint = pixel_angle(s) * jnp.where(jnp.isfinite(t), t, 0.0) / MAP_DETAIL
+        if not compact:
+            return surface_term(s, points, normals, albedo, t, visibility, footprint=footprint)
+        lit = lit_surfaces(s, points, normals, jnp.isfinite(t), footprint,
+                           lambda i, *a, **k: surface_light(s, i, *a, visibility=visibility, **k), chunk=28,
+                           block=7)
+        return surface_radiance(s, albedo, t, lit)
+
+    p0 = _params(scene)
+    dense, compact = surfaces(p0, False), jax.jit(surfaces, static_argnums=1)(p0, True)
+    assert float(jnp.max(dense)) > 0 and float(jnp.mean(dense > 0)) < 0.9   # lit and unlit pixels
+    np.testing.assert_allclose(np.asarray(compact), np.asarray(dense), rtol=_EXACT, atol=_EXACT * float(dense.max()))
+    grads = [jax.grad(lambda p, c=c: jnp.sum(weights * surfaces(p, c)))(p0) for c in (False, True)]
+    for name in p0:
+        np.testing.assert_allclose(np.asarray(grads[1][name]), np.asarray(grads[0][name]), rtol=1e-9,
+                                   atol=1e-12, err_msg=name)
