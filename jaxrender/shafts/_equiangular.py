@@ -349,6 +349,15 @@ def _chunks_bwd(fn, n_runs, res, g):
 _chunks.defvjp(_chunks_fwd, _chunks_bwd, symbolic_zeros=True)
 
 
+def _as_runs(x: Array, size: int, block: int, trailing: tuple[int, ...] = ()) -> Array:
+    """The first `size` entries of x (any batch shape, then `trailing`), flat, zero-padded to whole
+    runs of `block`: (runs, block, *trailing)."""
+    n_runs = -(-size // block)
+    pad = n_runs * block - size
+    flat = x.reshape((-1,) + trailing)
+    return jnp.pad(flat, ((0, pad),) + ((0, 0),) * len(trailing)).reshape((n_runs, block) + trailing)
+
+
 def active_rays_map(scatter, dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"], t1: Float[Array, "*B"], *,
                     chunk: int = 8192, block: int = 32, into: Float[Array, "*B 3"] | None = None
                     ) -> Float[Array, "*B 3"]:
@@ -363,13 +372,8 @@ def active_rays_map(scatter, dirs: Float[Array, "*B 3"], t0: Float[Array, "*B"],
     shape = t0.shape
     n = t0.size
     block = int(min(block, n))
-    n_runs = -(-n // block)
-    pad = n_runs * block - n
-    d = jnp.pad(dirs.reshape((-1, 3)), ((0, pad), (0, 0))).reshape((n_runs, block, 3))
-    a = jnp.pad(t0.reshape((-1,)), (0, pad)).reshape((n_runs, block))
-    b = jnp.pad(t1.reshape((-1,)), (0, pad)).reshape((n_runs, block))
-    base = (jnp.zeros((n_runs, block, 3), dirs.dtype) if into is None
-            else jnp.pad(into.reshape((-1, 3)), ((0, pad), (0, 0))).reshape((n_runs, block, 3)))
+    d, a, b = _as_runs(dirs, n, block, (3,)), _as_runs(t0, n, block), _as_runs(t1, n, block)
+    base = jnp.zeros_like(d) if into is None else _as_runs(into, n, block, (3,))
 
     def evaluate(valid, d, a, b):
         a = jnp.where(valid[:, None], a, 0.0)
@@ -435,15 +439,9 @@ def lit_surfaces(scene: ShaftsScene, points: Float[Array, "*B 3"], normals: Floa
     shape = hit.shape
     n = hit.size
     block = int(min(block, n))
-    n_runs = -(-n // block)
-    pad = n_runs * block - n
-
-    def runs(x, trailing=()):
-        return jnp.pad(x.reshape((-1,) + trailing), ((0, pad),) + ((0, 0),) * len(trailing)).reshape(
-            (n_runs, block) + trailing)
-
-    p, nrm, fp, h = runs(points, (3,)), runs(normals, (3,)), runs(footprint), runs(hit)
-    total = jnp.zeros((n_runs, block, 3), points.dtype)
+    p, nrm = _as_runs(points, n, block, (3,)), _as_runs(normals, n, block, (3,))
+    fp, h = _as_runs(footprint, n, block), _as_runs(hit, n, block)
+    total = jnp.zeros_like(p)
     for index, light in enumerate(scene.lights):
         local = jax.lax.stop_gradient(light.to_local(p))
         tan_c = jnp.tan(jnp.minimum(light.cutoff + 1e-3, 0.5 * jnp.pi - 1e-3))
