@@ -9,8 +9,10 @@ for a captured one (`../shared/data/mocap/dance-short_normal_001.bvh`, or $JAXRE
 
 Timed: the scene + rig setup (robe made and settled, stage cast and lit), the first frame
 (compile) apart, then `--frames` frames of the dance (default 24), wall and process CPU,
-min/median/max; then the pieces of the last frame, each jitted alone (median of 3, wall and
-CPU). Rows "25 Noh" to benchmarks/results/noh_frame.json (not with --quick). The last frame goes
+min/median/max, rendered as `jaxrender noh` renders them (`sequence_frames`: the next frame's robe
+simulated in a second thread while this one renders); then the pieces of the last frame, each
+jitted alone (median of 3, wall and CPU), the robe and the image apart and the two in one program.
+Rows "25 Noh" to benchmarks/results/noh_frame.json (not with --quick). The last frame goes
 to benchmarks/figures/noh_frame_<motion>.png (`--quick`: ..._quick.png, not committed).
 
 Run: `python benchmarks/noh_frame.py` (720x480, both motions) or `--quick` (160x120, a coarse
@@ -71,8 +73,10 @@ def _pieces(scene, rig, state, key) -> list[tuple[str, float, float]]:
         (f"PCSS x 4 at {n} performer + reflected points (capacities) and "
          f"{rig.shadow_grid.points.shape[1]} stage points per fire", jax.jit(lambda mp, p: mo.fire_shadows(rig, mp, p)),
          (maps, points)),
-        ("the whole frame", jax.jit(lambda s, k: mo.noh_frame(scene, rig, s, scene.flames[:, 0], k)[0]),
-         (state, key)),
+        ("the frame's image (all but the robe)",
+         jax.jit(lambda s, k: mo.frame_image(scene, rig, s, scene.flames[:, 0], k)[0]), (state, key)),
+        ("the whole frame, robe then image",
+         jax.jit(lambda s, k: mo.noh_frame(scene, rig, s, scene.flames[:, 0], k)[0]), (state, key)),
     ]
     return [(name, *_timed(fn, *args)) for name, fn, args in parts]
 
@@ -80,7 +84,7 @@ def _pieces(scene, rig, state, key) -> list[tuple[str, float, float]]:
 def run_motion(label: str, motion, args) -> dict:
     """Scene, rig, then frames of `motion` (None: the built-in dance): the figures of one row."""
     from jaxrender.app.scenes import noh
-    from jaxrender.app.scenes.noh.motion import grown, noh_frame_jit
+    from jaxrender.app.scenes.noh.motion import sequence_frames
     from jaxrender.app.scenes.noh.rig import prepare_rig
 
     quick = args.quick
@@ -97,21 +101,22 @@ def run_motion(label: str, motion, args) -> dict:
                           duration=(n_frames + 1) * 0.1, **small)
     rig = jax.block_until_ready(prepare_rig(scene, key=k_env, shadow_resolution=res))
     setup_s = time.perf_counter() - t
-    state, wall, cpu, compile_s, recompiles = scene.performer.costume.state, [], [], None, 0
-    for i in range(n_frames + 1):
-        args_i = (scene.flames[:, i % scene.flames.shape[1]], jax.random.fold_in(k_frames, i))
-        t, c = time.perf_counter(), time.process_time()
-        image, new_state, counts = jax.block_until_ready(noh_frame_jit(scene, rig, state, *args_i))
-        bigger = grown(rig, counts)
-        if bigger is not None:   # a buffer overflowed: the frame again with larger ones (one more compile)
-            rig, recompiles = bigger, recompiles + 1
-            image, new_state, counts = jax.block_until_ready(noh_frame_jit(scene, rig, state, *args_i))
+    wall, cpu, compile_s, recompiles = [], [], None, 0
+    frame_args = lambda i: (scene.flames[:, i % scene.flames.shape[1]], jax.random.fold_in(k_frames, i))  # noqa: E731
+    t, c = time.perf_counter(), time.process_time()
+    # as `jaxrender noh` renders: the next frame's robe simulated while this one renders
+    # (one frame more than timed: the last one timed has its successor's robe to simulate too)
+    for i, frame in enumerate(sequence_frames(scene, rig, scene.performer.costume.state, n_frames + 2, frame_args)):
         if i == 0:
             compile_s = time.perf_counter() - t
         else:
             wall.append(time.perf_counter() - t)
             cpu.append(time.process_time() - c)
-        state = new_state
+        rig, recompiles, state = frame.rig, recompiles + frame.regrown, frame.state
+        image, counts = frame.image, frame.counts
+        if i == n_frames:
+            break
+        t, c = time.perf_counter(), time.process_time()
     pieces = [] if quick else _pieces(scene, rig, state, jax.random.key(0))
     out = Path(__file__).resolve().parent / "figures" / (f"noh_frame_{label}{'_quick' if quick else ''}.png")
     out.parent.mkdir(exist_ok=True)

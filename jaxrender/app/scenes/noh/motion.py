@@ -1,16 +1,19 @@
-"""One frame of the Takigi Noh sequence, everything that moves redone in one jitted call
-(`noh_frame`): the robe's Verlet steps on the skeleton's motion, the performer's mesh, its
-G-buffer and its mirror image's, the fires' depth maps, PCSS at the performer's points and at
-the stage's, the shading (BTFs, environment, firelight), the stage's light, the floors'
-reflection and the flames; and the sequence loop (`render_sequence`).
+"""One frame of the Takigi Noh sequence, everything that moves redone each frame (`noh_frame`):
+the robe's Verlet steps on the skeleton's motion (`advance_robe`), then the frame of the new pose
+(`frame_image`): the performer's mesh, its G-buffer and its mirror image's, the fires' depth maps,
+PCSS at the performer's points and at the stage's, the shading (BTFs, environment, firelight), the
+stage's light, the floors' reflection and the flames; and the sequence loop (`sequence_frames`,
+`render_sequence`), which simulates the next frame's robe in a second thread while a frame renders.
 
-How the frame is composed and what keeps it near a second on two cores: docs/noh.md, "A frame".
-"""
+How the frame is composed and what keeps it near a second on two cores: docs/noh.md, "A frame"."""
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import time
+from collections.abc import Iterator
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -205,11 +208,24 @@ def fire_shadows(rig: NohRig, maps: ShadowMap, points: Float[Array, "N 3"]
 def noh_frame(scene: NohScene, rig: NohRig, state: ClothState, emission: Float[Array, "Q Hf Wf 3"],
               key: PRNGKeyArray, *, k_fire: int = 20, blend: str = "shading"
               ) -> tuple[Float[Array, "H W 3"], ClothState, FrameCounts]:
-    """One frame (module docstring): the robe advanced by a frame on the motion, then the view,
-    shadows, lighting and reflection of the new pose. Returns the linear image, the robe's new
-    state and the frame's counts."""
+    """One frame (module docstring): the robe advanced by a frame on the motion (`advance_robe`),
+    then the view, shadows, lighting and reflection of the new pose (`frame_image`). Returns the
+    linear image, the robe's new state and the frame's counts."""
+    state = advance_robe(scene, state, rig.steps)
+    image, counts = frame_image(scene, rig, state, emission, key, k_fire=k_fire, blend=blend)
+    return image, state, counts
+
+
+def advance_robe(scene: NohScene, state: ClothState, steps: int) -> ClothState:
+    """The robe `steps` Verlet steps on from `state`, on the performer's motion."""
+    return advance_costume(scene.performer.costume, state, scene.performer.motion, steps=steps)
+
+
+def frame_image(scene: NohScene, rig: NohRig, state: ClothState, emission: Float[Array, "Q Hf Wf 3"],
+                key: PRNGKeyArray, *, k_fire: int = 20, blend: str = "shading"
+                ) -> tuple[Float[Array, "H W 3"], FrameCounts]:
+    """The frame of the robe's `state` (the body at its time): the linear image and its counts."""
     performer = scene.performer
-    state = advance_costume(performer.costume, state, performer.motion, steps=rig.steps)
     mesh = performer_mesh(performer, state)
     x, tris = mesh.vertices, mesh.triangles
     dtype = x.dtype
@@ -286,10 +302,12 @@ def noh_frame(scene: NohScene, rig: NohRig, state: ClothState, emission: Float[A
     counts = FrameCounts(seen, g_count, r_count, jnp.maximum(g_extent, r_extent), jnp.maximum(g_large, r_large),
                          shadow_extent, shadow_large,
                          jnp.concatenate([projected_bounds(ph, x), projected_bounds(ph, mv)]))
-    return img, state, counts
+    return img, counts
 
 
 noh_frame_jit = eqx.filter_jit(noh_frame)
+advance_robe_jit = eqx.filter_jit(advance_robe)
+frame_image_jit = eqx.filter_jit(frame_image)
 
 
 def _inside(bounds, box: tuple[int, int, int, int], ph: Pinhole) -> bool:
@@ -329,6 +347,43 @@ def grown(rig: NohRig, counts: FrameCounts) -> NohRig | None:
     return dataclasses.replace(rig, **changes)
 
 
+class SequenceFrame(NamedTuple):
+    image: Float[Array, "H W 3"]
+    state: ClothState          # the robe as rendered
+    counts: FrameCounts
+    rig: NohRig                # the rig it was rendered with (grown when a buffer overflowed)
+    regrown: int               # how many times its buffers were grown (one compile each)
+
+
+def sequence_frames(scene: NohScene, rig: NohRig, state: ClothState, count: int, frame_args, *, k_fire: int = 20
+                    ) -> Iterator[SequenceFrame]:
+    """`count` frames continuing the robe from `state`, each as `noh_frame` makes it (`frame_args(i)`:
+    frame i's emission and key); a frame whose counts overflow the rig is rendered again with grown
+    buffers, which later frames keep. The robe of the next frame is simulated in a worker thread
+    while this one renders: its Verlet steps are small sequential kernels that keep about one core
+    busy however many there are, so on two cores a frame's wall time comes nearer the larger of the
+    two parts than their sum (docs/noh.md, "A frame")."""
+    steps = rig.steps
+
+    def advance(st):
+        return jax.block_until_ready(advance_robe_jit(scene, st, steps))
+
+    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="robe") as pool:
+        ahead = pool.submit(advance, state)
+        for i in range(count):
+            state = ahead.result()
+            if i + 1 < count:
+                ahead = pool.submit(advance, state)
+            regrown = 0
+            while True:
+                image, counts = jax.block_until_ready(frame_image_jit(scene, rig, state, *frame_args(i), k_fire=k_fire))
+                bigger = grown(rig, counts)
+                if bigger is None:
+                    break
+                rig, regrown = bigger, regrown + 1
+            yield SequenceFrame(image, state, counts, rig, regrown)
+
+
 def render_sequence(scene: NohScene, *, frames: int, key: PRNGKeyArray, k_env: int = 20, k_fire: int = 20,
                     frame_dt: float = 0.1, shadow_resolution: int = 512, progress=None, time_repeats: int = 0,
                     info: dict | None = None, states: list | None = None) -> tuple[list[np.ndarray], NohRig]:
@@ -344,28 +399,22 @@ def render_sequence(scene: NohScene, *, frames: int, key: PRNGKeyArray, k_env: i
                                             frame_dt=frame_dt))
     prepare_s = time.perf_counter() - t0
     n_flames = scene.flames.shape[1]
-    state = scene.performer.costume.state
     out, seconds, recompiles, mask0 = [], [], 0, None
-    for i in range(frames + time_repeats):
-        ts = time.perf_counter()
-        while True:
-            image, new_state, counts = jax.block_until_ready(
-                noh_frame_jit(scene, rig, state, scene.flames[:, i % n_flames], jax.random.fold_in(k_frames, i),
-                              k_fire=k_fire))
-            bigger = grown(rig, counts)
-            if bigger is None:
-                break
-            rig, recompiles = bigger, recompiles + 1
+    frame_args = lambda i: (scene.flames[:, i % n_flames], jax.random.fold_in(k_frames, i))  # noqa: E731
+    ts = time.perf_counter()
+    for i, frame in enumerate(sequence_frames(scene, rig, scene.performer.costume.state, frames + time_repeats,
+                                              frame_args, k_fire=k_fire)):
         seconds.append(time.perf_counter() - ts)
-        state = new_state
+        rig, recompiles = frame.rig, recompiles + frame.regrown
         if i == 0:
-            mask0 = np.asarray(counts.performer_mask)
+            mask0 = np.asarray(frame.counts.performer_mask)
         if i < frames:
-            out.append(np.asarray(image, np.float32))
+            out.append(np.asarray(frame.image, np.float32))
             if states is not None:
-                states.append(new_state)
+                states.append(frame.state)
             if progress is not None:
                 progress(1)
+        ts = time.perf_counter()
     if info is not None:
         info.update(prepare_s=prepare_s, compile_s=seconds[0], frame_s=seconds[1:frames],
                     timed_s=seconds[frames:], recompiles=recompiles, performer_mask=mask0)
