@@ -1,5 +1,6 @@
 """The Takigi Noh frame (jaxrender.app.scenes.noh.motion) at a small size: the robe continues frame
-to frame and what depends on it follows; the polished floor reflects without gaining light; the
+to frame and what depends on it follows, the same in the sequence loop that simulates the next
+frame's robe while a frame renders; the polished floor reflects without gaining light; the
 fires' depth maps and the G-buffer in two windows (and a box) equal one pass; the stage's
 unit fire irradiance against a dense float64 quadrature; its half-resolution shadows against PCSS
 at every pixel."""
@@ -19,6 +20,7 @@ from jaxrender.app.scenes.noh.motion import (
     fire_depth_maps,
     fire_shadows,
     noh_frame_jit,
+    sequence_frames,
     split_rasterize,
 )
 from jaxrender.app.scenes.noh.performer import performer_mesh
@@ -62,7 +64,7 @@ def test_frames_follow_the_moving_performer(setup):
     scene, rig = setup
     performer = scene.performer
     state = performer.costume.state
-    images, masks = [], []
+    images, masks, states = [], [], []
     for i in range(3):
         image, new_state, counts = noh_frame_jit(scene, rig, state, scene.flames[:, i], jax.random.key(i))
         assert int(counts.performer) <= rig.capacity and int(counts.reflection) <= rig.reflection_capacity
@@ -71,6 +73,14 @@ def test_frames_follow_the_moving_performer(setup):
         state = new_state
         images.append(np.asarray(image))
         masks.append(np.asarray(counts.performer_mask))
+        states.append(np.asarray(state.x))
+    # the sequence loop (the next frame's robe simulated in a second thread) makes the same frames
+    piped = list(sequence_frames(scene, rig, performer.costume.state, 3,
+                                 lambda i: (scene.flames[:, i], jax.random.key(i))))
+    assert len(piped) == 3 and all(f.regrown == 0 for f in piped)
+    for f, image, x in zip(piped, images, states):
+        np.testing.assert_allclose(np.asarray(f.state.x), x, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(f.image), image, rtol=1e-9, atol=1e-12)
     assert all(np.all(np.isfinite(im)) and np.all(im >= 0) for im in images)
     assert masks[0].sum() > 50                                   # the performer is in the picture
     assert np.sum(masks[0] != masks[2]) > 5                       # ... and moved

@@ -401,9 +401,13 @@ def render_sequence(scene: NohScene, *, frames: int, key: PRNGKeyArray, k_env: i
     n_flames = scene.flames.shape[1]
     out, seconds, recompiles, mask0 = [], [], 0, None
     frame_args = lambda i: (scene.flames[:, i % n_flames], jax.random.fold_in(k_frames, i))  # noqa: E731
+    total = frames + time_repeats
     ts = time.perf_counter()
-    for i, frame in enumerate(sequence_frames(scene, rig, scene.performer.costume.state, frames + time_repeats,
-                                              frame_args, k_fire=k_fire)):
+    # timing: one frame more, so that the last frame timed has its successor's robe to simulate too
+    for i, frame in enumerate(sequence_frames(scene, rig, scene.performer.costume.state,
+                                              total + (time_repeats > 0), frame_args, k_fire=k_fire)):
+        if i == total:
+            break
         seconds.append(time.perf_counter() - ts)
         rig, recompiles = frame.rig, recompiles + frame.regrown
         if i == 0:
