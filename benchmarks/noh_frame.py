@@ -8,10 +8,11 @@ Target: <= 1 s median per frame on 2 cores, compile apart, for the built-in moti
 for a captured one (`../shared/data/mocap/dance-short_normal_001.bvh`, or $JAXRENDER_MOCAP).
 
 Timed: the scene + rig setup (robe made and settled, stage cast and lit), the first frame
-(compile) apart, then `--frames` frames of the dance (default 24), wall and process CPU,
-min/median/max, rendered as `jaxrender noh` renders them (`sequence_frames`: the next frame's robe
-simulated in a second thread while this one renders); then the pieces of the last frame, each
-jitted alone (median of 3, wall and CPU), the robe and the image apart and the two in one program.
+(compile) apart, then `--frames` frames (default 24: frames 1-12 of the dance twice), wall and
+process CPU, min/median/max, rendered as `jaxrender noh` renders them (`sequence_frames`: the next frame's robe
+simulated in a second thread while this one renders), and beside them the same frames with the
+robe and the image one after the other (`noh_frame`), in two blocks each, alternately; then the
+pieces of the last frame, each jitted alone (median of 3, wall and CPU).
 Rows "25 Noh" to benchmarks/results/noh_frame.json (not with --quick). The last frame goes
 to benchmarks/figures/noh_frame_<motion>.png (`--quick`: ..._quick.png, not committed).
 
@@ -84,12 +85,14 @@ def _pieces(scene, rig, state, key) -> list[tuple[str, float, float]]:
 def run_motion(label: str, motion, args) -> dict:
     """Scene, rig, then frames of `motion` (None: the built-in dance): the figures of one row."""
     from jaxrender.app.scenes import noh
-    from jaxrender.app.scenes.noh.motion import sequence_frames
+    from jaxrender.app.scenes.noh.motion import noh_frame_jit, sequence_frames
     from jaxrender.app.scenes.noh.rig import prepare_rig
 
     quick = args.quick
     width, height, res = (160, 120, 64) if quick else (720, 480, 512)
     n_frames = args.frames or (3 if quick else 24)
+    blocks = 1 if quick else 2          # each way of rendering timed in this many blocks, alternately
+    per_block = max(n_frames // blocks, 1)
     key = jax.random.key(2024)                     # as `jaxrender noh` (its default seed)
     k_scene, k_rest = jax.random.split(key)
     k_env, k_frames = jax.random.split(k_rest)
@@ -98,25 +101,45 @@ def run_motion(label: str, motion, args) -> dict:
     t = time.perf_counter()
     btfs = noh.default_btfs(size=8, pyramid="none") if quick else None
     scene = noh.noh_scene(width=width, height=height, frames=20, key=k_scene, btfs=btfs, motion=motion,
-                          duration=(n_frames + 1) * 0.1, **small)
+                          duration=(per_block + 2) * 0.1, **small)
     rig = jax.block_until_ready(prepare_rig(scene, key=k_env, shadow_resolution=res))
     setup_s = time.perf_counter() - t
-    wall, cpu, compile_s, recompiles = [], [], None, 0
     frame_args = lambda i: (scene.flames[:, i % scene.flames.shape[1]], jax.random.fold_in(k_frames, i))  # noqa: E731
-    t, c = time.perf_counter(), time.process_time()
-    # as `jaxrender noh` renders: the next frame's robe simulated while this one renders
-    # (one frame more than timed: the last one timed has its successor's robe to simulate too)
-    for i, frame in enumerate(sequence_frames(scene, rig, scene.performer.costume.state, n_frames + 2, frame_args)):
-        if i == 0:
-            compile_s = time.perf_counter() - t
-        else:
-            wall.append(time.perf_counter() - t)
-            cpu.append(time.process_time() - c)
-        rig, recompiles, state = frame.rig, recompiles + frame.regrown, frame.state
-        image, counts = frame.image, frame.counts
-        if i == n_frames:
-            break
-        t, c = time.perf_counter(), time.process_time()
+    start = scene.performer.costume.state
+
+    def piped(rig):
+        """Frames 0..per_block as `jaxrender noh` renders them (`sequence_frames`: the next frame's robe
+        simulated while this one renders; one frame more than timed, so that the last one timed has
+        its successor's robe to simulate too): per-frame (wall, CPU), the last frame, recompiles."""
+        seconds, regrown, t, c = [], 0, time.perf_counter(), time.process_time()
+        for i, frame in enumerate(sequence_frames(scene, rig, start, per_block + 2, frame_args)):
+            seconds.append((time.perf_counter() - t, time.process_time() - c))
+            regrown += frame.regrown
+            if i == per_block:
+                break
+            t, c = time.perf_counter(), time.process_time()
+        return seconds, frame, regrown
+
+    def serial(rig):
+        """The same frames with the robe and the image one after the other (`noh_frame`)."""
+        seconds, state = [], start
+        for i in range(per_block + 1):
+            t, c = time.perf_counter(), time.process_time()
+            _, state, _ = jax.block_until_ready(noh_frame_jit(scene, rig, state, *frame_args(i)))
+            seconds.append((time.perf_counter() - t, time.process_time() - c))
+        return seconds
+
+    timed, alone, recompiles = [], [], 0
+    for block in range(blocks):   # the two ways alternately, so that both see the same machine
+        seconds, frame, regrown = piped(rig)
+        rig, recompiles = frame.rig, recompiles + regrown
+        if block == 0:
+            compile_s = seconds[0][0]
+        timed += seconds[1:]
+        if not quick:
+            alone += serial(rig)[1:]
+    wall, cpu = [w for w, _ in timed], [c for _, c in timed]
+    state, image, counts = frame.state, frame.image, frame.counts
     pieces = [] if quick else _pieces(scene, rig, state, jax.random.key(0))
     out = Path(__file__).resolve().parent / "figures" / (f"noh_frame_{label}{'_quick' if quick else ''}.png")
     out.parent.mkdir(exist_ok=True)
@@ -128,6 +151,8 @@ def run_motion(label: str, motion, args) -> dict:
     exposure = EXPOSURE_KEY / max(float(np.percentile(lum, 90)) if lum.size else 1.0, 1e-6)
     write_png(out, noh.tonemap_frames(np.asarray(image)[None], exposure=exposure)[0])
     return dict(label=label, width=width, height=height, res=res, setup_s=setup_s, compile_s=compile_s,
+                serial_wall=[w for w, _ in alone], serial_cpu=[c for _, c in alone],
+                frames=f"{blocks} x frames 1-{per_block}",
                 recompiles=recompiles, wall=wall, cpu=cpu, pieces=pieces, performer=int(counts.performer),
                 reflection=int(counts.reflection), load=os.getloadavg()[0])
 
@@ -160,10 +185,13 @@ def main() -> None:
         for k, v in [("scene + rig setup (robe made and settled, stage cast and lit; incl. compile) s",
                       f"{r['setup_s']:.2f}"), ("first frame (compile + run) s", f"{r['compile_s']:.2f}"),
                      ("recompiles (a buffer grew)", str(r["recompiles"])),
-                     (f"frame wall s, min / median / max of {len(r['wall'])}",
+                     (f"frame wall s, min / median / max of {len(r['wall'])} ({r['frames']})",
                       f"{min(r['wall']):.3f} / {med:.3f} / {max(r['wall']):.3f}"),
                      ("frame process CPU s (both cores), min / median / max",
                       f"{min(r['cpu']):.3f} / {med_cpu:.3f} / {max(r['cpu']):.3f}"),
+                     ("the same frames, robe then image (`noh_frame`), wall / CPU s, median",
+                      f"{statistics.median(r['serial_wall']):.3f} / {statistics.median(r['serial_cpu']):.3f}"
+                      if r["serial_wall"] else "not timed (--quick)"),
                      ("performer / reflected pixels (last frame)", f"{r['performer']} / {r['reflection']}")]:
             print(f"| {k} | {v} |")
         if r["pieces"]:
@@ -177,8 +205,10 @@ def main() -> None:
         rows.append(dict(
             area="noh", target=f"720x480 frame, everything redone per frame, {r['label']} motion, <= 1 s",
             measured=f"{med:.3f} s median frame wall ({min(r['wall']):.3f}-{max(r['wall']):.3f}), {med_cpu:.3f} s "
-                     f"process CPU, {len(r['wall'])} frames, compile {r['compile_s']:.1f} s, setup "
-                     f"{r['setup_s']:.1f} s, load {r['load']:.1f}",
+                     f"process CPU, {len(r['wall'])} frames ({r['frames']}), compile {r['compile_s']:.1f} s, setup "
+                     f"{r['setup_s']:.1f} s, load {r['load']:.1f}; the same frames robe then image, alternately: "
+                     f"{statistics.median(r['serial_wall'] or [float('nan')]):.3f} s wall, "
+                     f"{statistics.median(r['serial_cpu'] or [float('nan')]):.3f} s CPU",
             status=verdict if r["load"] <= 2.5 else f"{verdict} at load {r['load']:.1f} (wall)",
             notes="; ".join(f"{n}: {c:.3f} s CPU" for n, _, c in r["pieces"]),
             figures={"median_frame_s": med, "median_frame_cpu_s": med_cpu, "compile_s": r["compile_s"]}))
