@@ -5,6 +5,7 @@ fires' depth maps and the G-buffer in two windows (and a box) equal one pass; th
 unit fire irradiance against a dense float64 quadrature; its half-resolution shadows against PCSS
 at every pixel."""
 
+import concurrent.futures
 import dataclasses
 
 import equinox as eqx
@@ -19,6 +20,7 @@ from jaxrender.app.scenes.noh.motion import (
     _cropped,
     fire_depth_maps,
     fire_shadows,
+    in_callers_config,
     noh_frame_jit,
     sequence_frames,
     split_rasterize,
@@ -85,6 +87,19 @@ def test_frames_follow_the_moving_performer(setup):
     assert masks[0].sum() > 50                                   # the performer is in the picture
     assert np.sum(masks[0] != masks[2]) > 5                       # ... and moved
     assert np.abs(images[2] - images[0]).mean() > 0
+
+
+def test_the_robe_thread_runs_under_the_callers_jax_configuration():
+    """JAX's configuration contexts hold per thread: the sequence loop's worker takes the caller's."""
+    def dtype_in_thread(fn):
+        with concurrent.futures.ThreadPoolExecutor(1) as pool:
+            return pool.submit(fn).result()
+
+    probe = lambda: (jnp.zeros(1) + 1.0).dtype  # noqa: E731
+    with jax.enable_x64(False):
+        assert dtype_in_thread(probe) == jnp.float64          # the tests' global setting, not the context's
+        assert dtype_in_thread(in_callers_config(probe)) == jnp.float32
+    assert dtype_in_thread(in_callers_config(probe)) == jnp.float64
 
 
 def test_floor_reflection_adds_the_mirrored_scene_within_fresnel(setup):

@@ -347,7 +347,23 @@ def grown(rig: NohRig, counts: FrameCounts) -> NohRig | None:
     return dataclasses.replace(rig, **changes)
 
 
+def in_callers_config(fn):
+    """`fn` to be run in another thread under this thread's JAX configuration: JAX's context
+    managers (`jax.enable_x64`, the promotion rules) hold per thread, so a worker thread would
+    otherwise trace under the global settings (float32 where the caller asked for float64)."""
+    x64 = jax.config.jax_enable_x64
+    rank, dtypes = jax.config.jax_numpy_rank_promotion, jax.config.jax_numpy_dtype_promotion
+
+    def run(*args):
+        with jax.enable_x64(x64), jax.numpy_rank_promotion(rank), jax.numpy_dtype_promotion(dtypes):
+            return fn(*args)
+
+    return run
+
+
 class SequenceFrame(NamedTuple):
+    """One frame of `sequence_frames`."""
+
     image: Float[Array, "H W 3"]
     state: ClothState          # the robe as rendered
     counts: FrameCounts
@@ -364,9 +380,7 @@ def sequence_frames(scene: NohScene, rig: NohRig, state: ClothState, count: int,
     busy however many there are, so on two cores a frame's wall time comes nearer the larger of the
     two parts than their sum (docs/noh.md, "A frame")."""
     steps = rig.steps
-
-    def advance(st):
-        return jax.block_until_ready(advance_robe_jit(scene, st, steps))
+    advance = in_callers_config(lambda st: jax.block_until_ready(advance_robe_jit(scene, st, steps)))
 
     with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="robe") as pool:
         ahead = pool.submit(advance, state)
