@@ -29,6 +29,7 @@ from collections.abc import Callable, Iterable, Iterator
 from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
@@ -187,11 +188,20 @@ def _tile_program(tile: int, settings: FitSettings):
     the maps are bit-identical whatever the device count. (Partitioning one program over a mesh
     rounds differently per device count; `vmap` over a device axis batches the solver loop a
     second time, 5-10x slower on CPU; `jax.shard_map`/`pmap` meet lineax's structure checks.)
+    `active` (one count per tile): the tile's texels that are not padding; only those are solved
+    (`fitting.lm.fit_texels`), and a tile of padding only is skipped.
     """
 
-    def fn(ratio, weight, light_dirs, view_dir, materials):
-        out = jax.lax.map(lambda rw: fit_texels(rw[0], rw[1], light_dirs, view_dir, settings, materials=materials),
-                          (ratio, weight))
+    def fn(ratio, weight, active, light_dirs, view_dir, materials):
+        def fit(tile_data):
+            r, w, n = tile_data
+            return fit_texels(r, w, light_dirs, view_dir, settings, materials=materials, active=n)
+
+        def skip(tile_data):   # a tile of padding only: nothing to fit
+            return jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(fit, tile_data))
+
+        out = jax.lax.map(lambda tile_data: jax.lax.cond(tile_data[2] > 0, fit, skip, tile_data),
+                          (ratio, weight, active))
         return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
     return jax.jit(fn)
@@ -220,12 +230,15 @@ def fit_chunk(ratio: np.ndarray, weight: np.ndarray, plan: ChunkPlan, index: int
             place = jax.sharding.SingleDeviceSharding(dev)
             r = jax.device_put(ratio[share].reshape((-1, tile) + ratio.shape[1:]), place)
             w = jax.device_put(weight[share].reshape((-1, tile) + weight.shape[1:]), place)
+            # the tiles' texels that are not padding (the last chunk's, or a material sample's)
+            first = d * per_device + np.arange(0, per_device, tile)
+            active = jax.device_put(np.clip(count - first, 0, tile).astype(np.int32), place)
             dirs = jax.device_put(np.asarray(light_dirs, dtype), place)
             view = jax.device_put(np.asarray(view_dir, dtype), place)
             materials = None if table is None else jax.device_put(jax.tree.map(
                 lambda x: np.asarray(x, dtype) if np.issubdtype(np.asarray(x).dtype, np.floating) else np.asarray(x),
                 table), place)
-            outs.append(fn(r, w, dirs, view, materials))
+            outs.append(fn(r, w, active, dirs, view, materials))
     out = jax.tree.map(lambda *shares: np.concatenate([np.asarray(x) for x in shares]), *outs)
     return jax.tree.map(lambda v: v[:count], out)
 

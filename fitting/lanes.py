@@ -28,10 +28,15 @@ def _where(mask, new, old):
     return jax.tree.map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
 
 
-def solve_in_lanes(steps, theta0, per_texel, make):
+def solve_in_lanes(steps, theta0, per_texel, make, active=None):
     """(theta `N 4`, converged `N`, steps `N`) of every texel's solve from `theta0` (`N 4`): the
-    problem of texel i is `make(x[i] for every leaf x of per_texel)`."""
+    problem of texel i is `make(x[i] for every leaf x of per_texel)`.
+
+    `active` (a traced integer, None: N): only the first `active` texels are solved; the rest
+    (a batch's padding) are left at zero and cost nothing. A solved texel's result is the same
+    whatever `active` is: the lanes take the texels in the same order."""
     n = theta0.shape[0]
+    active = n if active is None else jnp.minimum(active, n)
     lanes = LANES   # always: a lane's arithmetic has one vector shape whatever the batch (bit-identical results)
 
     def problem_of(index):
@@ -46,19 +51,19 @@ def solve_in_lanes(steps, theta0, per_texel, make):
     out = (jnp.zeros((n + 1,) + theta0.shape[1:], theta0.dtype), jnp.zeros(n + 1, bool), jnp.zeros(n + 1, jnp.int32))
 
     def cond(carry):
-        return jnp.any(carry[0] < n)
+        return jnp.any(carry[0] < active)
 
     def body(carry):
         index, following, state, out = carry
         state = jax.vmap(lambda st, p: steps.step(st, make(p)))(state, problem_of(index))
-        done = ~jax.vmap(steps.running)(state) & (index < n)
+        done = ~jax.vmap(steps.running)(state) & (index < active)
         theta, ok, count = jax.vmap(steps.result)(state)
         slot = jnp.where(done, index, n)   # row n: a sink for the lanes that write nothing
         out = (out[0].at[slot].set(theta), out[1].at[slot].set(ok), out[2].at[slot].set(count.astype(jnp.int32)))
         rank = jnp.cumsum(done) - 1
-        index = jnp.where(done, jnp.minimum(following + rank, n), index)
+        index = jnp.where(done, jnp.minimum(following + rank, active), index)
         following = following + jnp.sum(done)
-        state = _where(done & (index < n), start(index), state)
+        state = _where(done & (index < active), start(index), state)
         return index, following, state, out
 
     _, _, _, out = jax.lax.while_loop(cond, body, (index, jnp.asarray(lanes), state, out))

@@ -286,10 +286,10 @@ def _bright_enough(ratio_cl, w):
 # ---------------------------------------------------------------------------------------------
 # fitting a batch
 
-def _solve(settings: FitSettings, theta0, per_texel, lights, stage):
+def _solve(settings: FitSettings, theta0, per_texel, lights, stage, active=None):
     """Every texel's solve from theta0 (`N 4`); `per_texel` = (ratio_cl, w, prior or None), each
-    with a leading axis of N. A backend that steps solves the batch in lanes (`fitting.lanes`),
-    the others texel by texel (vmapped)."""
+    with a leading axis of N. A backend that steps solves the batch in lanes (`fitting.lanes`), the
+    first `active` texels only (None: all), the others texel by texel (vmapped), every texel."""
     rtol, atol = default_tolerances(theta0.dtype)
 
     def make(p):
@@ -297,7 +297,7 @@ def _solve(settings: FitSettings, theta0, per_texel, lights, stage):
 
     if settings.solver in STEPPING:
         return solve_in_lanes(STEPPING[settings.solver](settings.model, settings.max_steps, rtol, atol), theta0,
-                              per_texel, make)
+                              per_texel, make, active)
     solve, fn = BACKENDS[settings.solver], VarProResidual(settings.model)
     return jax.vmap(lambda th, p: solve(fn, th, make(p), settings.max_steps, rtol, atol))(theta0, per_texel)
 
@@ -307,16 +307,16 @@ def _finite_or(theta, fallback):
     return jnp.where(bad, fallback, theta), bad[..., 0]
 
 
-def _plain(ratio_cl, w, lights, settings: FitSettings):
+def _plain(ratio_cl, w, lights, settings: FitSettings, active=None):
     """(theta, prior None, row -1, converged, steps) of per-texel least squares."""
     model = settings.model
     theta0 = jax.vmap(lambda r, wi: _initial_theta(r, wi, lights, model))(ratio_cl, w)
-    theta, ok, steps = _solve(settings, theta0, (ratio_cl, w, None), lights, None)
+    theta, ok, steps = _solve(settings, theta0, (ratio_cl, w, None), lights, None, active)
     theta, bad = _finite_or(theta, theta0)
     return theta, None, jnp.full(theta.shape[0], -1, jnp.int32), ok & ~bad, steps
 
 
-def _robust(ratio_cl, w, lights, settings: FitSettings, table: MaterialTable):
+def _robust(ratio_cl, w, lights, settings: FitSettings, table: MaterialTable, active=None):
     """The robust method on a batch (docs/fitting.md, "Real captures: the robust method"):
     (theta, prior, row, converged, steps). ROBUST_ROUNDS geometry solves (every parameter, an
     ambient term projected out, without the dimmest observations, reweighted by how badly the
@@ -342,7 +342,7 @@ def _robust(ratio_cl, w, lights, settings: FitSettings, table: MaterialTable):
         w_later = jax.vmap(lambda th, r, wg, pr: _robust_weights(th, r, wg, lights, model, pr, ambient=ambient))(
             theta, ratio_cl, w_geo, prior)
         weights = jnp.where(last, w, jnp.where(i == 0, w_first, w_later))
-        theta_r, ok_r, steps_r = _solve(settings, theta, (ratio_cl, weights, prior), lights, stage)
+        theta_r, ok_r, steps_r = _solve(settings, theta, (ratio_cl, weights, prior), lights, stage, active)
         theta_r, bad = _finite_or(theta_r, theta)
         kept = i >= ROBUST_ROUNDS - 1   # the rounds whose result the fit keeps
         return theta_r, jnp.where(kept, ok & ok_r & ~bad, ok), steps + steps_r
@@ -385,10 +385,13 @@ def _prepare(ratio, weight):
 
 def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_dirs: Float[Array, "L 3"],
                view_dir: Float[Array, "3"], settings: FitSettings = FitSettings(), *,
-               materials: MaterialTable | None = None) -> TexelFit:
+               materials: MaterialTable | None = None, active=None) -> TexelFit:
     """Fit a batch of texels as `settings` say (`method`, `solver`, `max_steps`, `model`; `chunk`
     plays no part here); jitted. The robust method fits under the prior of each texel's material in
-    `materials` (None: a table without priors, `fitting.materials.no_materials`).
+    `materials` (None: a table without priors, `fitting.materials.no_materials`). `active` (an
+    integer, may be traced; None: every texel): only the first `active` texels are solved, the
+    rest of the batch is padding whose results are meaningless (the stepping backends, solving in
+    lanes, spend no step on them).
 
     A texel's fit is bit-identical in any batch, at any place: the lights are padded with
     weight-0 observations and the batch with copies of its last texel to multiples of `_ALIGN`,
@@ -396,7 +399,7 @@ def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_
     (XLA:CPU's remainder loops use scalar exp/log, which round differently), and a texel's solve
     runs the same operations whichever lane it takes (`fitting.lanes`).
     """
-    return _fit_texels(ratio, weight, light_dirs, view_dir, materials, settings=settings.program())
+    return _fit_texels(ratio, weight, light_dirs, view_dir, materials, active, settings=settings.program())
 
 
 def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs: Float[Array, "L 3"],
@@ -409,7 +412,7 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
 
 
 @functools.partial(jax.jit, static_argnames="settings")
-def _fit_texels(ratio, weight, light_dirs, view_dir, materials, *, settings: FitSettings) -> TexelFit:
+def _fit_texels(ratio, weight, light_dirs, view_dir, materials, active, *, settings: FitSettings) -> TexelFit:
     ratio = jnp.asarray(ratio)
     dt = ratio.dtype
     weight, light_dirs, view_dir = (jnp.asarray(x, dt) for x in (weight, light_dirs, view_dir))
@@ -428,9 +431,9 @@ def _fit_texels(ratio, weight, light_dirs, view_dir, materials, *, settings: Fit
     lights = lights_of(light_dirs, view_dir)
     if settings.robust:
         table = no_materials(dt) if materials is None else materials
-        fitted = _robust(ratio_cl, w, lights, settings, table)
+        fitted = _robust(ratio_cl, w, lights, settings, table, active)
     else:
-        fitted = _plain(ratio_cl, w, lights, settings)
+        fitted = _plain(ratio_cl, w, lights, settings, active)
     theta, prior, row, ok, steps = fitted
     out = jax.vmap(lambda th, r, wi, pr, ro, o, st, nv: _texel_fit(th, r, wi, lights, settings.model, pr, ro, o, st,
                                                                     nv))(theta, ratio_cl, w, prior, row, ok, steps,

@@ -38,7 +38,7 @@ def data():
     return ratio, jnp.ones(ratio.shape[:2], jnp.float32)
 
 
-def _solves(module, ratio, weight, lanes_only=False):
+def _solves(module, ratio, weight, lanes_only=False, active=None):
     r, w, _ = jax.vmap(_prepare)(ratio, weight)
     lights = lights_of(LIGHTS, VIEW)
     theta0 = jax.vmap(lambda a, b: _initial_theta(a, b, lights, "reciprocal"))(r, w)
@@ -47,7 +47,7 @@ def _solves(module, ratio, weight, lanes_only=False):
     def make(p):
         return Problem(p[0], p[1], lights, None, None)
 
-    lanes = solve_in_lanes(module.Steps("reciprocal", MAX_STEPS, rtol, atol), theta0, (r, w), make)
+    lanes = solve_in_lanes(module.Steps("reciprocal", MAX_STEPS, rtol, atol), theta0, (r, w), make, active)
     if lanes_only:
         return lanes
     alone = jax.vmap(lambda th, a, b: module.solve(VarProResidual("reciprocal"), th, make((a, b)), MAX_STEPS, rtol,
@@ -84,3 +84,17 @@ def test_a_texel_does_not_depend_on_its_batch(data):
         other = fn(ratio[order], weight[order])
     for a, b in zip(other, whole):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[order])
+
+
+@pytest.mark.parametrize("active", [0, 40, N])
+def test_only_the_active_texels_are_solved(data, active):
+    """A batch's padding is not solved: with `active` = k the first k texels get the results they
+    get in the whole batch, bit for bit, and the rest are left at zero, no step taken."""
+    ratio, weight = data
+    with jax.enable_x64(False):
+        whole = jax.jit(lambda r, w: _solves(lm_native, r, w, lanes_only=True))(ratio, weight)
+        part = jax.jit(lambda r, w, k: _solves(lm_native, r, w, lanes_only=True, active=k))(ratio, weight, active)
+    for a, b in zip(part, whole):
+        np.testing.assert_array_equal(np.asarray(a)[:active], np.asarray(b)[:active])
+        assert not np.any(np.asarray(a)[active:])
+    assert np.all(np.asarray(whole[2]) > 0)   # every texel of the whole batch took steps
