@@ -47,11 +47,6 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
 # same few hundred small programs each (measured: a Noh benchmark's second run 29 s CPU with them
 # cached, 44 s with only those over a second)
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-# A size limit turns on JAX's file lock around the cache's reads and writes: without it an entry is
-# written in place, and a second process (an xdist worker, a command a test starts) reading it at
-# that moment gets a truncated entry and a warning (seen: two workers collecting test_lanes.py at
-# once from an empty cache). 4 GiB: far above a full run's ~150 MB, so nothing is evicted.
-os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(4 * 2**30))
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
