@@ -5,7 +5,8 @@ it is imported only when asked for, so `jaxrender --help` answers without import
 
 Every failure becomes one line on stderr naming the file and the problem, with the exit code of
 its kind (`jaxrender.errors`: 2 bad input, 3 a fault of the machine, 4 the output busy, 1 a bug);
-`--debug` or `JAXRENDER_DEBUG=1` prints the traceback above it.
+`--debug` or `JAXRENDER_DEBUG=1` prints the traceback above it. Compiled programs are kept between
+runs (`compile_cache`).
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ from jaxrender.errors import (
     NonFiniteOutput,
     OutputBusy,
 )
+
+from .compile_cache import use_compile_cache
 
 DEBUG_ENV = "JAXRENDER_DEBUG"
 # an OSError with one of these names a path the user gave that is not there or not of the right kind
@@ -129,6 +132,7 @@ def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
     except UsageError as error:
         print(error, file=sys.stderr)
         return EXIT_INPUT
+    use_compile_cache()   # a second run loads what the first compiled
     shown = warnings.showwarning
     # a warning is one line too, naming the command (Python's shows the source line below it)
     warnings.showwarning = lambda message, *rest, **kw: print(f"{prog} {name}: warning: {message}", file=sys.stderr)
