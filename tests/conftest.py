@@ -9,26 +9,21 @@ a run as one, point $JAX_COMPILATION_CACHE_DIR at an empty directory. Tests that
 itself set their own."""
 
 import gc
-import hashlib
 import os
-import platform
 import tempfile
 from pathlib import Path
 
+from jaxrender.app.cli.compile_cache import machine_key  # imports no jax: the settings below come first
+
 
 def _compile_cache() -> Path:
-    """$XDG_CACHE_HOME/jaxrender-tests-<CPU> (~/.cache by default; the temporary directory where
-    that cannot be written): one directory per kind of CPU (its model and instruction-set flags),
-    so that a home directory shared between machines never offers one a program compiled for
-    another's instructions (JAX would reject it, loudly). It grows by what each edit recompiles (a
-    full run from empty: about 150 MB); delete it at will."""
-    try:
-        info = Path("/proc/cpuinfo").read_text()
-        cpu = next((line for line in info.splitlines() if line.startswith("model name")), "")
-        cpu += next((line for line in info.splitlines() if line.startswith("flags")), "")
-    except OSError:
-        cpu = ""
-    key = hashlib.sha256(f"{platform.machine()} {platform.processor()} {cpu}".encode()).hexdigest()[:12]
+    """$XDG_CACHE_HOME/jaxrender-tests-<key> (~/.cache by default; the temporary directory where
+    that cannot be written): one directory per kind of CPU (its model and instruction-set flags)
+    and JAX version (the commands' own cache's key, `compile_cache.machine_key`), so that a home
+    directory shared between machines never offers one a program compiled for another's
+    instructions (JAX would reject it, loudly). It grows by what each edit recompiles (a full run
+    from empty: about 150 MB); delete it at will."""
+    key = machine_key()
     for base in (os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache", tempfile.gettempdir()):
         path = Path(base) / f"jaxrender-tests-{key}"
         try:  # a home directory one cannot write to: the temporary directory instead

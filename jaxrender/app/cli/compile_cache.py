@@ -45,7 +45,7 @@ print(len(hits))
 """
 
 
-def _machine_key() -> str:
+def machine_key() -> str:
     """A short hash of the CPU (model name and flags) and the installed jax and jaxlib versions."""
     try:
         info = Path("/proc/cpuinfo").read_text()
@@ -73,7 +73,7 @@ def cache_dir(environ=None) -> Path | None:
     if value is not None:
         return None if value.strip().lower() in _OFF or not value.strip() else Path(value).expanduser()
     base = Path(environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return base / "jaxrender" / f"compile-{_machine_key()}"
+    return base / "jaxrender" / f"compile-{machine_key()}"
 
 
 def _run_probe(path: Path) -> tuple[bool, str]:
