@@ -45,6 +45,15 @@ def test_the_check_marks_the_directory(tmp_path, monkeypatch, stdout, stderr, ex
     assert usable(path) is expected
 
 
+def test_a_check_that_does_not_finish_is_made_again(tmp_path, monkeypatch):
+    """A child that fails (or does not start) decides nothing: no cache this time, no verdict kept."""
+    monkeypatch.setattr(compile_cache, "_PROBE_CHILD", "raise SystemExit(1)")
+    path = tmp_path / "cache"
+    assert usable(path) is False and not (path / PROBE_FILE).exists()
+    monkeypatch.setattr(compile_cache, "_PROBE_CHILD", "print(1)")
+    assert usable(path) is True and json.loads((path / PROBE_FILE).read_text())["usable"] is True
+
+
 def test_a_directory_that_cannot_be_made_is_not_used(tmp_path, monkeypatch):
     monkeypatch.setattr(compile_cache, "_run_probe", lambda path: pytest.fail("no check without a directory"))
     (tmp_path / "file").write_text("")

@@ -76,9 +76,10 @@ def cache_dir(environ=None) -> Path | None:
     return base / "jaxrender" / f"compile-{machine_key()}"
 
 
-def _run_probe(path: Path) -> tuple[bool, str]:
+def _run_probe(path: Path) -> tuple[bool | None, str]:
     """(usable, why): the first child writes a program into `path/probe`, the second must read it back
-    with nothing on stderr."""
+    with nothing on stderr. usable is None where the check itself did not finish (asked again next
+    time)."""
     probe = path / "probe"
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
     outputs = []
@@ -87,9 +88,9 @@ def _run_probe(path: Path) -> tuple[bool, str]:
             child = subprocess.run([sys.executable, "-c", _PROBE_CHILD, str(probe)], capture_output=True, text=True,
                                    env=env, timeout=PROBE_TIMEOUT_S)
         except (OSError, subprocess.TimeoutExpired) as error:
-            return False, f"the check did not run: {error}"
+            return None, f"the check did not run: {error}"
         if child.returncode != 0:
-            return False, f"the check failed: {(child.stderr.strip().splitlines() or [''])[-1]}"
+            return None, f"the check failed: {(child.stderr.strip().splitlines() or [''])[-1]}"
         outputs.append(child)
     second = outputs[1]
     errors = [line for line in second.stderr.splitlines() if line.strip()]
@@ -112,6 +113,8 @@ def usable(path: Path) -> bool:
         except (OSError, ValueError, KeyError, TypeError):
             pass
         ok, why = _run_probe(path)
+        if ok is None:
+            return False
         partial = marker.with_name(f".{PROBE_FILE}.{os.getpid()}")
         partial.write_text(json.dumps({"usable": ok, "why": why}))
         partial.replace(marker)

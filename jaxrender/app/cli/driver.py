@@ -132,11 +132,11 @@ def run_cli(prog: str, description: str, commands: dict[str, tuple[str, str]],
     except UsageError as error:
         print(error, file=sys.stderr)
         return EXIT_INPUT
-    use_compile_cache()   # a second run loads what the first compiled
     shown = warnings.showwarning
     # a warning is one line too, naming the command (Python's shows the source line below it)
     warnings.showwarning = lambda message, *rest, **kw: print(f"{prog} {name}: warning: {message}", file=sys.stderr)
     try:
+        use_compile_cache()   # a second run loads what the first compiled
         return int(module.run(args) or 0)
     except KeyboardInterrupt:
         print(f"{prog} {name}: interrupted", file=sys.stderr)
