@@ -13,13 +13,11 @@ from __future__ import annotations
 import argparse
 import filecmp
 import os
-import resource
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
+from _commands import run_command
 from _results import cpu_description, write_results
 
 from jaxrender.app.cli.compile_cache import CACHE_ENV
@@ -32,16 +30,7 @@ JAXRENDER = [sys.executable, "-m", "jaxrender.app.cli.programs", "jaxrender"]
 def run_gallery(out: Path, cache: Path, extra: list[str]) -> dict:
     """One `jaxrender gallery` in a fresh process with its compile cache in `cache` (JAX's own
     $JAX_COMPILATION_CACHE_DIR, set when the test suite runs this, wins over it)."""
-    env = {**os.environ, CACHE_ENV: str(cache)}
-    before, load = resource.getrusage(resource.RUSAGE_CHILDREN), os.getloadavg()[0]
-    t0 = time.perf_counter()
-    subprocess.run([*JAXRENDER, "gallery", "--out", str(out), *extra], check=True, stdout=subprocess.DEVNULL,
-                   env=env)
-    wall = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "load": round(load, 2),
-            "load_after": round(os.getloadavg()[0], 2)}
+    return run_command([*JAXRENDER, "gallery", "--out", str(out), *extra], env={**os.environ, CACHE_ENV: str(cache)})
 
 
 def differing(first: Path, second: Path) -> list[str]:

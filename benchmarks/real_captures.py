@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -58,6 +57,7 @@ from jaxrender.app.cli.compile_cache import CACHE_ENV
 from jaxrender.app.cli.compile_cache import usable as compile_cache_usable
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _commands import run_command  # noqa: E402
 from _mitsuba_capture import render_capture  # noqa: E402
 from _results import cpu_description, write_results  # noqa: E402
 from capture_scale import write_capture  # noqa: E402
@@ -85,15 +85,7 @@ def _cli(*args: str, cache: Path | None = None) -> dict:
     """`fitting ARGS` as a user runs it (a fresh process: import and compilation included), keeping its
     compiled programs in `cache` (None: no compile cache; `$JAX_COMPILATION_CACHE_DIR`, set for
     --quick runs, wins over both): wall and CPU seconds of the child, the load before and after."""
-    env = {**os.environ, CACHE_ENV: str(cache) if cache is not None else "0"}
-    before, load = resource.getrusage(resource.RUSAGE_CHILDREN), os.getloadavg()[0]
-    t0 = time.perf_counter()
-    subprocess.run([*FITTING, *args], check=True, stdout=subprocess.DEVNULL, env=env)
-    wall = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return {"wall_s": round(wall, 2), "cpu_s": round((after.ru_utime - before.ru_utime)
-                                                     + (after.ru_stime - before.ru_stime), 2),
-            "load": round(load, 2), "load_after": round(os.getloadavg()[0], 2)}
+    return run_command([*FITTING, *args], env={**os.environ, CACHE_ENV: str(cache) if cache is not None else "0"})
 
 
 def _subsample(obs, stride: int):
