@@ -1,5 +1,6 @@
 """The gallery page: sections render into their folders, failures are reported, not hidden."""
 
+import os
 import sys
 import types
 
@@ -27,7 +28,7 @@ def test_gallery_page_lists_images_params_timings_and_failures(tmp_path, monkeyp
     monkeypatch.setitem(sys.modules, "fake_broken", types.SimpleNamespace(gallery_section=_broken_section))
     monkeypatch.setattr(gallery, "SECTIONS", {"ok": ("fake_ok", "OK section"), "broken": ("fake_broken", "Broken")})
     lines = []
-    result = gallery.render_gallery(tmp_path, quick=True, log=lines.append)
+    result = gallery.render_gallery(tmp_path, quick=True, log=lines.append)  # jobs=1: in this process
     page = (tmp_path / "index.html").read_text()
     assert (tmp_path / "ok" / "img.png").is_file()
     assert 'src="ok/img.png"' in page and "a grey square" in page and "render_s" in page
@@ -43,4 +44,34 @@ def test_gallery_cli_rejects_unknown_section(tmp_path, capsys):
     assert main(["gallery", "--out", str(tmp_path / "g"), "--only", "nonsense"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nonsense" in err[0]
+    assert not (tmp_path / "g").exists()
+
+
+def test_sections_render_side_by_side_in_processes_of_their_own(tmp_path, monkeypatch):
+    """`jobs=2`: the two "together" sections run at once (each waits for the other to start), each
+    section in a process other than this one; lines reach this process's log as they are written;
+    a failing section and one whose process dies are reported, the others kept, the page in
+    `SECTIONS`' order."""
+    fake = ("gallery_fake_sections", "stand-in")
+    monkeypatch.setattr(gallery, "SECTIONS", {n: fake for n in ("together_a", "broken", "together_b", "dies")})
+    lines = []
+    result = gallery.render_gallery(tmp_path, quick=True, log=lines.append, jobs=2)
+    sections = result["sections"]
+    assert list(sections) == ["together_a", "broken", "together_b", "dies"] and result["jobs"] == 2
+    for name in ("together_a", "together_b"):
+        assert sections[name]["error"] is None, sections[name]["error"]
+        assert sections[name]["entries"][0]["params"]["pid"] != os.getpid()
+        assert f"[gallery] {name}: wrote {name}/img.png (" in "\n".join(lines)
+    assert "boom" in sections["broken"]["error"] and sections["broken"]["entries"]
+    assert "exit code 3" in sections["dies"]["error"] and sections["dies"]["entries"] == []
+    assert any(line.startswith("[gallery] dies: wrote dies/img.png (") for line in lines), lines  # sent before it died
+    page = (tmp_path / "index.html").read_text()
+    assert page.index('id="together_a"') < page.index('id="broken"') < page.index('id="together_b"')
+    assert "exit code 3" in page and "2 sections rendering at once" in page
+
+
+def test_gallery_cli_rejects_jobs_below_one(tmp_path, capsys):
+    assert main(["gallery", "--out", str(tmp_path / "g"), "--jobs", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--jobs" in err[0]
     assert not (tmp_path / "g").exists()

@@ -4,6 +4,11 @@ PNG/EXR files and one `index.html` that shows them with their parameters and tim
 Each showcase provides `gallery_section(out_dir, *, quick=False)`, a generator that yields each
 entry once its files are written; an entry is {"title", "images" (paths relative to out_dir),
 "caption", "params", "timings"}.
+
+With `jobs` > 1 the sections render side by side, each in a process of its own (started afresh:
+no state is shared): most of a first run's time is XLA compiling the sections' programs, one
+program at a time on one core, so a second section compiling or rendering beside it uses the
+machine's other cores (`benchmarks/gallery_time.py`). The longest sections start first.
 """
 
 from __future__ import annotations
@@ -11,6 +16,9 @@ from __future__ import annotations
 import html
 import importlib
 import json
+import multiprocessing
+import multiprocessing.connection
+import os
 import platform
 import time
 import traceback
@@ -26,16 +34,27 @@ SECTIONS = {
     "fit": ("jaxrender.app.gallery.fit", "Fitting a BTF to a synthetic multi-light capture (paper 004)"),
     "noh": ("jaxrender.app.gallery.noh", "Woven fabric under dusk sky and firelight (paper 004)"),
 }
+# the order sections start in when they render side by side: the longest first, so that the last
+# one to finish is a short one (full size, 2 cores: see benchmarks/gallery_time.py)
+LONGEST_FIRST = ("noh", "stage", "desert", "fit")
+
+
+def default_jobs(sections: int) -> int:
+    """Sections rendered at once by default: one per core this process may use, at most one per section."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(cores, sections))
 
 
 def render_gallery(out_dir: str | Path, *, sections: list[str] | None = None, quick: bool = False,
-                   log=tqdm.write) -> dict:
+                   log=tqdm.write, jobs: int = 1) -> dict:
     """Render the chosen sections (all by default) into `out_dir`; write `index.html` last.
 
-    Each entry is logged as it is written; on a terminal a bar counts the sections (none otherwise).
-    Returns {"sections": {name: {"entries": [...], "seconds": float, "error": str | None}}}.
-    A section that fails is reported on the page (with its traceback) and in the result; the
-    others still render.
+    `jobs`: sections rendered at once, each in its own process when more than one (module
+    docstring); 1 renders them one after the other in this process. Each entry is logged as it is
+    written; on a terminal a bar counts the sections (none otherwise). Returns {"sections": {name:
+    {"entries": [...], "seconds": float, "error": str | None}}, "quick", "jobs"}, the sections in
+    `SECTIONS`' order. A section that fails, or whose process dies, is reported on the page (with
+    its traceback or exit code) and in the result; the others still render.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -43,11 +62,18 @@ def render_gallery(out_dir: str | Path, *, sections: list[str] | None = None, qu
     unknown = [n for n in names if n not in SECTIONS]
     if unknown:
         raise ValueError(f"unknown gallery sections {unknown}; choose from {list(SECTIONS)}")
-    result = {"sections": {}, "quick": quick}
+    if int(jobs) < 1:
+        raise ValueError(f"jobs must be at least 1, got {jobs}")
+    jobs = min(int(jobs), len(names))
     with tqdm(total=len(names), desc="gallery", unit="section", disable=None) as bar:
-        for name in names:
-            result["sections"][name] = _render_section(name, out_dir, quick, log)
-            bar.update(1)
+        if jobs == 1:
+            done = {}
+            for name in names:
+                done[name] = _render_section(name, SECTIONS[name], out_dir, quick, log)
+                bar.update(1)
+        else:
+            done = _render_side_by_side(names, out_dir, quick, log, jobs, bar.update)
+    result = {"sections": {name: done[name] for name in names}, "quick": quick, "jobs": jobs}
     with atomic_path(out_dir / "index.html") as tmp:
         tmp.write_text(_page(result))
     with atomic_path(out_dir / "gallery.json") as tmp:
@@ -55,8 +81,8 @@ def render_gallery(out_dir: str | Path, *, sections: list[str] | None = None, qu
     return result
 
 
-def _render_section(name: str, out_dir: Path, quick: bool, log) -> dict:
-    module_name, heading = SECTIONS[name]
+def _render_section(name: str, section: tuple[str, str], out_dir: Path, quick: bool, log) -> dict:
+    module_name, heading = section
     log(f"[gallery] {name}: {heading} ...")
     start, entries, error = time.perf_counter(), [], None
     try:
@@ -71,6 +97,65 @@ def _render_section(name: str, out_dir: Path, quick: bool, log) -> dict:
     seconds = time.perf_counter() - start
     log(f"[gallery] {name}: {len(entries)} entries in {seconds:.1f} s")
     return {"heading": heading, "entries": entries, "seconds": seconds, "error": error}
+
+
+def _section_process(name: str, section: tuple[str, str], out_dir: Path, quick: bool, messages) -> None:
+    """A section in a process of its own: its log lines, then its result, sent on `messages` (a
+    pipe's end: each written when sent, so a process that dies has delivered its lines)."""
+    result = _render_section(name, section, out_dir, quick, lambda line: messages.send(("line", line)))
+    messages.send(("done", result))
+
+
+def _render_side_by_side(names: list[str], out_dir: Path, quick: bool, log, jobs: int, finished) -> dict:
+    """Each section in a fresh process, `jobs` at a time, the longest first; their lines passed to
+    `log` as they come. {name: section result}."""
+    context = multiprocessing.get_context("spawn")   # fresh processes: JAX's runtime does not survive fork
+    waiting = sorted(names, key=lambda n: LONGEST_FIRST.index(n) if n in LONGEST_FIRST else len(LONGEST_FIRST))
+    running, done = {}, {}   # running: name -> (process, its messages' end, start time)
+
+    def read(name, connection) -> None:
+        while name not in done and connection.poll():
+            try:
+                kind, value = connection.recv()
+            except EOFError:
+                return
+            if kind == "line":
+                log(value)
+            else:
+                done[name] = value
+
+    try:
+        while waiting or running:
+            while waiting and len(running) < jobs:
+                name = waiting.pop(0)
+                receive, send = context.Pipe(duplex=False)
+                process = context.Process(target=_section_process, name=f"gallery-{name}",
+                                          args=(name, SECTIONS[name], out_dir, quick, send))
+                process.start()
+                send.close()   # the child's end: this process keeps only the reading one
+                running[name] = process, receive, time.perf_counter()
+            ready = multiprocessing.connection.wait(
+                [c for _, c, _ in running.values()] + [p.sentinel for p, _, _ in running.values()])
+            for name, (process, connection, start) in list(running.items()):
+                if connection in ready:
+                    read(name, connection)
+                if process.sentinel in ready or name in done:
+                    process.join()
+                    read(name, connection)   # what it sent before it ended
+                    if name not in done:     # ended without its result: killed, out of memory
+                        error = f"the section's process ended with exit code {process.exitcode} before it finished"
+                        log(f"[gallery] {name} FAILED: {error}")
+                        done[name] = {"heading": SECTIONS[name][1], "entries": [],
+                                      "seconds": time.perf_counter() - start, "error": error}
+                    connection.close()
+                    running.pop(name)
+                    finished(1)
+    finally:
+        for process, connection, _ in running.values():
+            process.terminate()
+            process.join()
+            connection.close()
+    return done
 
 
 def _table(values: dict) -> str:
@@ -113,7 +198,9 @@ def _page(result: dict) -> str:
     toc = " · ".join(f'<a href="#{n}">{html.escape(s["heading"])}</a>' for n, s in result["sections"].items())
     machine = f"{platform.platform()}, Python {platform.python_version()}"
     sizes = "quick preview sizes" if result["quick"] else "built-in defaults"
-    meta = (f"{sizes}; {html.escape(machine)}; timings are wall-clock on this machine, "
+    together = (f" with {result['jobs']} sections rendering at once (each section's times include the others' load)"
+                if result.get("jobs", 1) > 1 else "")
+    meta = (f"{sizes}; {html.escape(machine)}; timings are wall-clock on this machine{together}, "
             "compile time reported apart where given.")
     return f"""<!doctype html>
 <html><head><meta charset="utf-8"><title>jaxrender gallery</title>
