@@ -1,7 +1,8 @@
 """Stand-in gallery sections for tests/test_gallery.py, importable by the processes that render
 sections side by side: what a section does is chosen by its folder's name. "together_*": waits
-until its partner has started too (proof that they run at once); "broken": fails after its first
-entry; "dies": its process ends after its first entry, without a result."""
+until its partner has started too (proof that they run at once), with a progress bar of 3 steps;
+"broken": fails after its first entry; "dies": its process ends after its first entry, without a
+result."""
 
 import os
 import time
@@ -10,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxrender import io
+from jaxrender.app.gallery import progress_bar
 
 PARTNER_WAIT_S = 60.0
 
@@ -27,7 +29,11 @@ def gallery_section(out_dir: Path, *, quick: bool = False):
             if time.monotonic() > deadline:
                 raise RuntimeError(f"{name}: its partner never started")
             time.sleep(0.05)
-    yield {"title": name, "images": ["img.png"], "caption": "a grey square", "params": {"pid": os.getpid()}}
+        with progress_bar(3, "steps", "step") as bar:
+            for _ in range(3):
+                bar.update(1)
+    params = {"pid": os.getpid(), "cores": sorted(os.sched_getaffinity(0))}
+    yield {"title": name, "images": ["img.png"], "caption": "a grey square", "params": params}
     if name == "broken":
         raise RuntimeError("boom")
     if name == "dies":

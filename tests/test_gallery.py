@@ -49,11 +49,31 @@ def test_gallery_cli_rejects_unknown_section(tmp_path, capsys):
 
 def test_sections_render_side_by_side_in_processes_of_their_own(tmp_path, monkeypatch):
     """`jobs=2`: the two "together" sections run at once (each waits for the other to start), each
-    section in a process other than this one; lines reach this process's log as they are written;
-    a failing section and one whose process dies are reported, the others kept, the page in
-    `SECTIONS`' order."""
+    section in a process other than this one, on cores of its own; lines reach this process's log
+    as they are written, and the sections' progress bars are drawn here; a failing section and one
+    whose process dies are reported, the others kept, the page in `SECTIONS`' order."""
     fake = ("gallery_fake_sections", "stand-in")
     monkeypatch.setattr(gallery, "SECTIONS", {n: fake for n in ("together_a", "broken", "together_b", "dies")})
+    bars = []
+
+    class Bar:   # what this process draws on a terminal
+        def __init__(self, *, total, desc, **_):
+            self.desc, self.total, self.n, self.closed = desc, total, 0, False
+            bars.append(self)
+
+        def update(self, n=1):
+            self.n += n
+
+        def close(self):
+            self.closed = True
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.close()
+
+    monkeypatch.setattr(gallery, "tqdm", Bar)
     lines = []
     result = gallery.render_gallery(tmp_path, quick=True, log=lines.append, jobs=2)
     sections = result["sections"]
@@ -62,12 +82,18 @@ def test_sections_render_side_by_side_in_processes_of_their_own(tmp_path, monkey
         assert sections[name]["error"] is None, sections[name]["error"]
         assert sections[name]["entries"][0]["params"]["pid"] != os.getpid()
         assert f"[gallery] {name}: wrote {name}/img.png (" in "\n".join(lines)
+    # each on its own share of the cores (the suite's machines have 2 or more)
+    cores = [set(sections[n]["entries"][0]["params"]["cores"]) for n in ("together_a", "together_b")]
+    assert cores[0] and cores[1] and not cores[0] & cores[1] and cores[0] | cores[1] <= os.sched_getaffinity(0)
     assert "boom" in sections["broken"]["error"] and sections["broken"]["entries"]
     assert "exit code 3" in sections["dies"]["error"] and sections["dies"]["entries"] == []
     assert any(line.startswith("[gallery] dies: wrote dies/img.png (") for line in lines), lines  # sent before it died
     page = (tmp_path / "index.html").read_text()
     assert page.index('id="together_a"') < page.index('id="broken"') < page.index('id="together_b"')
-    assert "exit code 3" in page and "2 sections rendering at once" in page
+    assert "exit code 3" in page and "2 sections rendering at once, each on its share of the cores" in page
+    shown = {(b.desc, b.total, b.n, b.closed) for b in bars}
+    assert ("gallery", 4, 4, True) in shown
+    assert {("together_a: steps", 3, 3, True), ("together_b: steps", 3, 3, True)} <= shown, shown
 
 
 def test_gallery_cli_rejects_jobs_below_one(tmp_path, capsys):

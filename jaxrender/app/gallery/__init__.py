@@ -3,16 +3,18 @@ PNG/EXR files and one `index.html` that shows them with their parameters and tim
 
 Each showcase provides `gallery_section(out_dir, *, quick=False)`, a generator that yields each
 entry once its files are written; an entry is {"title", "images" (paths relative to out_dir),
-"caption", "params", "timings"}.
+"caption", "params", "timings"}. A section shows its inner progress with `progress_bar`.
 
 With `jobs` > 1 the sections render side by side, each in a process of its own (started afresh:
-no state is shared): most of a first run's time is XLA compiling the sections' programs, one
-program at a time on one core, so a second section compiling or rendering beside it uses the
-machine's other cores (`benchmarks/gallery_time.py`). The longest sections start first.
+no state is shared) on its share of the cores (`_core_groups`): much of a first run's time is XLA
+compiling the sections' programs, one program at a time on one core, so the other sections
+compile or render on the other cores meanwhile (`benchmarks/gallery_time.py`). The longest
+sections start first.
 """
 
 from __future__ import annotations
 
+import contextlib
 import html
 import importlib
 import json
@@ -37,6 +39,31 @@ SECTIONS = {
 # the order sections start in when they render side by side: the longest first, so that the last
 # one to finish is a short one (full size, 2 cores: see benchmarks/gallery_time.py)
 LONGEST_FIRST = ("noh", "stage", "desert", "fit")
+_PARENT = None   # in a section's own process: the pipe to the gallery's process (`_section_process`)
+
+
+class _RelayedBar:
+    """A section's bar in a process of its own: its steps sent to the gallery's process, which shows it."""
+
+    def __init__(self, total: int, desc: str, unit: str):
+        _PARENT.send(("bar", (desc, total, unit)))
+
+    def update(self, n: int = 1) -> None:
+        _PARENT.send(("advance", n))
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        _PARENT.send(("bar_done", None))
+
+
+def progress_bar(total: int, desc: str, unit: str):
+    """A section's progress bar (a context manager with `update(n)`): on a terminal only, also where
+    the section renders in a process of its own (the gallery's process draws it)."""
+    if _PARENT is not None:
+        return _RelayedBar(total, desc, unit)
+    return tqdm(total=total, desc=desc, unit=unit, leave=False, disable=None)
 
 
 def default_jobs(sections: int) -> int:
@@ -100,10 +127,39 @@ def _render_section(name: str, section: tuple[str, str], out_dir: Path, quick: b
 
 
 def _section_process(name: str, section: tuple[str, str], out_dir: Path, quick: bool, messages) -> None:
-    """A section in a process of its own: its log lines, then its result, sent on `messages` (a
-    pipe's end: each written when sent, so a process that dies has delivered its lines)."""
+    """A section in a process of its own: its log lines and bars' steps, then its result, sent on
+    `messages` (a pipe's end: each written when sent, so a process that dies has delivered its lines)."""
+    global _PARENT
+    _PARENT = messages
     result = _render_section(name, section, out_dir, quick, lambda line: messages.send(("line", line)))
     messages.send(("done", result))
+
+
+def _core_groups(jobs: int) -> list[set[int] | None]:
+    """The cores this process may use, dealt into `jobs` groups, one per section running at once:
+    each section's XLA thread pool on its own cores (two processes whose pools each span every
+    core slow each other down: measured, the whole gallery on 2 cores took longer side by side
+    than one section after the other). None each where the cores cannot be set."""
+    if not hasattr(os, "sched_setaffinity"):
+        return [None] * jobs
+    cores = sorted(os.sched_getaffinity(0))
+    if len(cores) < jobs:
+        return [None] * jobs
+    return [set(cores[k::jobs]) for k in range(jobs)]
+
+
+@contextlib.contextmanager
+def _cores(group: set[int] | None):
+    """This process on `group`'s cores meanwhile (a process started meanwhile keeps them)."""
+    if group is None:
+        yield
+        return
+    before = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, group)
+    try:
+        yield
+    finally:
+        os.sched_setaffinity(0, before)
 
 
 def _render_side_by_side(names: list[str], out_dir: Path, quick: bool, log, jobs: int, finished) -> dict:
@@ -111,7 +167,12 @@ def _render_side_by_side(names: list[str], out_dir: Path, quick: bool, log, jobs
     `log` as they come. {name: section result}."""
     context = multiprocessing.get_context("spawn")   # fresh processes: JAX's runtime does not survive fork
     waiting = sorted(names, key=lambda n: LONGEST_FIRST.index(n) if n in LONGEST_FIRST else len(LONGEST_FIRST))
-    running, done = {}, {}   # running: name -> (process, its messages' end, start time)
+    running, done, bars = {}, {}, {}   # running: name -> (process, its messages' end, start time, its cores)
+    free = _core_groups(jobs)
+
+    def close_bar(name) -> None:
+        if name in bars:
+            bars.pop(name).close()
 
     def read(name, connection) -> None:
         while name not in done and connection.poll():
@@ -121,6 +182,15 @@ def _render_side_by_side(names: list[str], out_dir: Path, quick: bool, log, jobs
                 return
             if kind == "line":
                 log(value)
+            elif kind == "bar":
+                close_bar(name)
+                desc, total, unit = value
+                bars[name] = tqdm(total=total, desc=f"{name}: {desc}", unit=unit, leave=False, disable=None)
+            elif kind == "advance":
+                if name in bars:
+                    bars[name].update(value)
+            elif kind == "bar_done":
+                close_bar(name)
             else:
                 done[name] = value
 
@@ -131,12 +201,14 @@ def _render_side_by_side(names: list[str], out_dir: Path, quick: bool, log, jobs
                 receive, send = context.Pipe(duplex=False)
                 process = context.Process(target=_section_process, name=f"gallery-{name}",
                                           args=(name, SECTIONS[name], out_dir, quick, send))
-                process.start()
+                group = free.pop(0)
+                with _cores(group):   # the process keeps them: XLA sizes its thread pool by them
+                    process.start()
                 send.close()   # the child's end: this process keeps only the reading one
-                running[name] = process, receive, time.perf_counter()
+                running[name] = process, receive, time.perf_counter(), group
             ready = multiprocessing.connection.wait(
-                [c for _, c, _ in running.values()] + [p.sentinel for p, _, _ in running.values()])
-            for name, (process, connection, start) in list(running.items()):
+                [c for _, c, *_ in running.values()] + [p.sentinel for p, *_ in running.values()])
+            for name, (process, connection, start, group) in list(running.items()):
                 if connection in ready:
                     read(name, connection)
                 if process.sentinel in ready or name in done:
@@ -148,10 +220,14 @@ def _render_side_by_side(names: list[str], out_dir: Path, quick: bool, log, jobs
                         done[name] = {"heading": SECTIONS[name][1], "entries": [],
                                       "seconds": time.perf_counter() - start, "error": error}
                     connection.close()
+                    close_bar(name)
                     running.pop(name)
+                    free.append(group)
                     finished(1)
     finally:
-        for process, connection, _ in running.values():
+        for name in list(bars):
+            close_bar(name)
+        for process, connection, *_ in running.values():
             process.terminate()
             process.join()
             connection.close()
@@ -198,8 +274,8 @@ def _page(result: dict) -> str:
     toc = " · ".join(f'<a href="#{n}">{html.escape(s["heading"])}</a>' for n, s in result["sections"].items())
     machine = f"{platform.platform()}, Python {platform.python_version()}"
     sizes = "quick preview sizes" if result["quick"] else "built-in defaults"
-    together = (f" with {result['jobs']} sections rendering at once (each section's times include the others' load)"
-                if result.get("jobs", 1) > 1 else "")
+    together = (f" with {result['jobs']} sections rendering at once, each on its share of the cores (its times are "
+                "for that share)" if result.get("jobs", 1) > 1 else "")
     meta = (f"{sizes}; {html.escape(machine)}; timings are wall-clock on this machine{together}, "
             "compile time reported apart where given.")
     return f"""<!doctype html>

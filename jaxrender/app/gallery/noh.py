@@ -10,12 +10,12 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from tqdm import tqdm
 
 from fitting import fit_capture, synth_capture
 from jaxrender.io import read_btf
 
 from ..scenes.noh import btf_levels_from_channels, default_btfs, render_noh, write_animation
+from . import progress_bar
 
 
 def gallery_section(out_dir: Path, *, quick: bool = False) -> Iterator[dict]:
@@ -28,7 +28,7 @@ def gallery_section(out_dir: Path, *, quick: bool = False) -> Iterator[dict]:
     timings: dict = {}
     t0 = time.perf_counter()
     btfs, source = _gallery_btfs(quick)
-    with tqdm(total=frames_n, desc="noh frames", unit="frame", leave=False, disable=None) as bar:
+    with progress_bar(frames_n, "noh frames", "frame") as bar:
         frames = render_noh(frames=frames_n, width=w, height=h, btfs=btfs, info=timings, progress=bar.update, **extra)
     paths = write_animation(sub, frames, exposure=timings["exposure"])
     total = time.perf_counter() - t0
