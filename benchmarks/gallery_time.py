@@ -65,9 +65,9 @@ def compared(*pairs: tuple[Path, Path]) -> str:
         pngs, exrs, largest = pngs | set(p), exrs | set(e), max(largest, r)
     text = f"PNGs differing: {', '.join(sorted(pngs)) or 'none'} (the fit figure's title prints its time)"
     if exrs:
-        text += (f"; {len(exrs)} EXRs differing in their last bits (largest relative difference {largest:.1e}: "
-                 "XLA's CPU backend splits some sums by the number of threads, which a section's share of the "
-                 "cores changes)")
+        text += (f"; {len(exrs)} EXRs differing by rounding (largest relative difference {largest:.1e}: XLA's "
+                 "CPU backend splits some sums by the number of threads, which a section's share of the cores "
+                 "changes; the Noh robe's simulation carries such a difference on from frame to frame)")
     return text
 
 
