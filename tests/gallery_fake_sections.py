@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxrender import io
-from jaxrender.app.gallery import progress_bar
+from jaxrender.app.gallery.progress import progress_bar
 
 PARTNER_WAIT_S = 60.0
 

@@ -3,7 +3,8 @@ PNG/EXR files and one `index.html` that shows them with their parameters and tim
 
 Each showcase provides `gallery_section(out_dir, *, quick=False)`, a generator that yields each
 entry once its files are written; an entry is {"title", "images" (paths relative to out_dir),
-"caption", "params", "timings"}. A section shows its inner progress with `progress_bar`.
+"caption", "params", "timings"}. A section shows its inner progress with `progress_bar`
+(`jaxrender.app.gallery.progress`).
 
 With `jobs` > 1 the sections render side by side, each in a process of its own (started afresh:
 no state is shared) on its share of the cores (`_core_groups`): much of a first run's time is XLA
@@ -30,6 +31,8 @@ from tqdm import tqdm
 
 from jaxrender.io import atomic_path
 
+from .progress import relay_to
+
 SECTIONS = {
     "stage": ("jaxrender.app.gallery.stage", "Light shafts on a stage (paper 000)"),
     "desert": ("jaxrender.app.gallery.desert", "Desert dunes with wind ripples (paper 001)"),
@@ -39,33 +42,6 @@ SECTIONS = {
 # the order sections start in when they render side by side: the longest first, so that the last
 # one to finish is a short one (full size, 2 cores: see benchmarks/gallery_time.py)
 LONGEST_FIRST = ("noh", "stage", "desert", "fit")
-_PARENT = None   # in a section's own process: the pipe to the gallery's process (`_section_process`)
-
-
-class _RelayedBar:
-    """A section's bar in a process of its own: its steps sent to the gallery's process, which shows it."""
-
-    def __init__(self, total: int, desc: str, unit: str):
-        _PARENT.send(("bar", (desc, total, unit)))
-
-    def update(self, n: int = 1) -> None:
-        _PARENT.send(("advance", n))
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        _PARENT.send(("bar_done", None))
-
-
-def progress_bar(total: int, desc: str, unit: str):
-    """A section's progress bar (a context manager with `update(n)`): on a terminal only, also where
-    the section renders in a process of its own (the gallery's process draws it)."""
-    if _PARENT is not None:
-        return _RelayedBar(total, desc, unit)
-    return tqdm(total=total, desc=desc, unit=unit, leave=False, disable=None)
-
-
 def default_jobs(sections: int) -> int:
     """Sections rendered at once by default: one per core this process may use, at most one per section."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
@@ -129,8 +105,7 @@ def _render_section(name: str, section: tuple[str, str], out_dir: Path, quick: b
 def _section_process(name: str, section: tuple[str, str], out_dir: Path, quick: bool, messages) -> None:
     """A section in a process of its own: its log lines and bars' steps, then its result, sent on
     `messages` (a pipe's end: each written when sent, so a process that dies has delivered its lines)."""
-    global _PARENT
-    _PARENT = messages
+    relay_to(messages)
     result = _render_section(name, section, out_dir, quick, lambda line: messages.send(("line", line)))
     messages.send(("done", result))
 

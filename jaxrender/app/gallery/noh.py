@@ -15,7 +15,7 @@ from fitting import fit_capture, synth_capture
 from jaxrender.io import read_btf
 
 from ..scenes.noh import btf_levels_from_channels, default_btfs, render_noh, write_animation
-from . import progress_bar
+from .progress import progress_bar
 
 
 def gallery_section(out_dir: Path, *, quick: bool = False) -> Iterator[dict]:
