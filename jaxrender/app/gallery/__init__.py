@@ -40,7 +40,7 @@ SECTIONS = {
     "noh": ("jaxrender.app.gallery.noh", "Woven fabric under dusk sky and firelight (paper 004)"),
 }
 # the order sections start in when they render side by side: the longest first, so that the last
-# one to finish is a short one (full size, 2 cores: see benchmarks/gallery_time.py)
+# one to finish is a short one (full size: the Noh dance takes about as long as the other three)
 LONGEST_FIRST = ("noh", "stage", "desert", "fit")
 def default_jobs(sections: int) -> int:
     """Sections rendered at once by default: one per core this process may use, at most one per section."""
@@ -113,8 +113,9 @@ def _section_process(name: str, section: tuple[str, str], out_dir: Path, quick: 
 def _core_groups(jobs: int) -> list[set[int] | None]:
     """The cores this process may use, dealt into `jobs` groups, one per section running at once:
     each section's XLA thread pool on its own cores (two processes whose pools each span every
-    core slow each other down: measured, the whole gallery on 2 cores took longer side by side
-    than one section after the other). None each where the cores cannot be set."""
+    core slow each other down: in a one-off probe on 2 cores, not a benchmark, the whole gallery
+    took longer side by side that way than one section after the other). None each where the
+    cores cannot be set."""
     if not hasattr(os, "sched_setaffinity"):
         return [None] * jobs
     cores = sorted(os.sched_getaffinity(0))
