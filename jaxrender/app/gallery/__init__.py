@@ -42,6 +42,8 @@ SECTIONS = {
 # the order sections start in when they render side by side: the longest first, so that the last
 # one to finish is a short one (full size: the Noh dance takes about as long as the other three)
 LONGEST_FIRST = ("noh", "stage", "desert", "fit")
+
+
 def default_jobs(sections: int) -> int:
     """Sections rendered at once by default: one per core this process may use, at most one per section."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
