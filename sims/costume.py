@@ -210,10 +210,7 @@ class Costume(eqx.Module):
     uv: Float[Array, "R 2"]
     triangles: Int[Array, "T 3"]         # into the rendered vertices
     sim_triangles: Int[Array, "T 3"]     # the same triangles, into the simulated vertices
-    # the edges and triangles kept outside the volumes: those with a free vertex (simulated vertices;
-    # the others' pushes move only fixed vertices, which are set on the skeleton after them)
-    edges: Int[Array, "E 2"]
-    pushed_triangles: Int[Array, "U 3"]
+    edges: Int[Array, "E 2"]             # the triangles' edges (simulated vertices), kept outside the volumes
     inverse_mass: Float[Array, " N"]     # 1 for a free vertex, 0 for a fixed one (the edges' pushes)
     dt: float = eqx.field(static=True)
     mass: float = eqx.field(static=True)
@@ -443,14 +440,11 @@ def dress_performer(motion: SkeletonMotion, joints: dict[str, int], *, rows: int
                       axis=0)
     inverse_mass = np.ones(n)
     inverse_mass[fixed] = 0.0
-    edges = edges[np.any(inverse_mass[edges] > 0, axis=1)]
-    pushed = sim_tris[np.any(inverse_mass[sim_tris] > 0, axis=1)]
     x0 = jnp.asarray(pts, dtype)
     costume = Costume(ClothState(x0, x0, jnp.zeros((), dtype)), springs, jnp.asarray(fixed, jnp.int32),
                       jnp.asarray(fixed_joint, jnp.int32), jnp.asarray(local, dtype), volumes,
                       jnp.asarray(render_index, jnp.int32), jnp.asarray(uv, dtype), jnp.asarray(tris, jnp.int32),
-                      jnp.asarray(sim_tris, jnp.int32), jnp.asarray(edges, jnp.int32), jnp.asarray(pushed, jnp.int32),
-                      jnp.asarray(inverse_mass, dtype),
+                      jnp.asarray(sim_tris, jnp.int32), jnp.asarray(edges, jnp.int32), jnp.asarray(inverse_mass, dtype),
                       dt, mass / n, damping, spring_damping, margin, 0.004)
     if settle_steps:
         still = SkeletonMotion(motion.positions[:1], motion.rotations[:1], motion.frame_time)
@@ -621,7 +615,7 @@ def advance_costume(costume: Costume, state: ClothState, motion: SkeletonMotion,
         for _ in range(passes):
             xn = _push_out(xn, a, b, body.radius + costume.margin)
         xn = _push_edges_out(xn, costume.edges, costume.inverse_mass, a, b, body.radius + costume.margin)
-        xn = _push_triangles_out(xn, costume.pushed_triangles, costume.inverse_mass, a, b, body.radius + costume.margin)
+        xn = _push_triangles_out(xn, costume.sim_triangles, costume.inverse_mass, a, b, body.radius + costume.margin)
         xn = xn.at[:, 1].set(jnp.maximum(xn[:, 1], costume.floor))
         # the fixed vertices on the skeleton, pushed aside by a volume that moves into them (an arm
         # swinging into the collar or the chest ring, the head bowed into the collar): pinned, they
