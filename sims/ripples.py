@@ -60,7 +60,7 @@ def simulate_ripples(field: Float[Array, "... H W"], params: RippleParams = Ripp
 
 def init_ripples(key: Array, shape: tuple[int, ...], *, low: float = 1.0, high: float = 1.5,
                  dtype=None) -> Float[Array, "... H W"]:
-    """Initial heights, uniform in [low, high) (the issue's 1.0-1.5); `shape` is (H, W) or
+    """Initial heights, uniform in [low, high); `shape` is (H, W) or
     (batch..., H, W)."""
     return random_field(key, tuple(shape), low=low, high=high, dtype=dtype)
 

@@ -5,7 +5,7 @@ One small capture (8 x 8 texels, 12 lights of random codes; a store of 4 tiles x
 one reference fit (in-process, float32 as `fitting fit` runs it, compiled into a persistent cache
 that the one fitting subprocess here loads). Every fault is made by hand on a copy of the store or the BTF, or injected
 (disk full, read-only, out of memory: an `OSError`/`MemoryError` raised where the write happens; a
-real small tmpfs and a read-only mount were checked by hand, see the issue's report). The command
+real small tmpfs and a read-only mount were checked by hand once; a test cannot mount one). The command
 lines run in this process through `fitting_main` / `jaxrender_main` (the driver is what is checked);
 the subprocesses are a second writer (a lock holder) and a fit killed by SIGKILL.
 """
@@ -235,8 +235,8 @@ FIELDS = [("size", [4, 16], "recorded in"), ("size", [8, 7], "56 texels"), ("siz
 
 @pytest.mark.parametrize("field,value,problem", FIELDS)
 def test_store_json_is_checked_against_the_arrays(root, store, field, value, problem):
-    """Each metadata field edited: refused when the store is opened, before any tile is fitted (issue
-    26: size [16, 64] of a 32 x 32 store gave a complete-looking 16 x 64 BTF with exit 0)."""
+    """Each metadata field edited: refused when the store is opened, before any tile is fitted (a
+    size of [16, 64] on a 32 x 32 store once gave a complete-looking 16 x 64 BTF with exit 0)."""
     bad = _copy(store, root / f"meta_{field}_{str(value).replace(' ', '')}")
     info = json.loads((bad / "store.json").read_text())
     info[field] = value

@@ -26,7 +26,7 @@ CHUNK = "8"  # 8 x 8 texels -> 8 chunks: several checkpoints before the end
 NORMAL_TOL_DEG = 3.0
 RHO_D_TOL = 0.05
 # Same chunks and tiles on 1 vs 2 (virtual CPU) devices: every device runs the same compiled tile
-# program and a texel keeps its place in its tile, so the maps are bit-identical (the issue asks
+# program and a texel keeps its place in its tile, so the maps are bit-identical (the target asks
 # for 1e-5).
 
 

@@ -4,7 +4,7 @@ from pathlib import Path
 
 from notebook_helpers import assert_outputs_current, run_notebook, tagged_results
 
-_RECOVERY_TOL = 0.01  # the 1 %: planes (48 x 8, float) fitted to a ray-marched target
+_RECOVERY_TOL = 0.01  # the notebook's 1 % target: planes (48 x 8, float) fitted to a ray-marched target
 
 NOTEBOOK = Path(__file__).resolve().parents[1] / "examples" / "shafts_inverse.ipynb"
 

@@ -34,7 +34,7 @@ from _em_numpy import em_texels_numpy, gather_children_numpy  # noqa: E402
 # amplifies rounding a little through its |change of log-likelihood| < 1e-5 stop (measured: 2.3e-6
 # on normals, < 1e-6 elsewhere, on the levels below).
 PEER_RTOL = 2e-5
-# The target: the two-lobe EM level's rendering error is at most a third of the mip's.
+# The target: the two-lobe EM level's rendering error is at most a third of the mip's.
 EM_VS_MIP_RATIO = 1 / 3
 N_TEXELS = 8
 N_PAIRS = 4000

@@ -28,7 +28,7 @@ from jaxrender.io import read_image
 from jaxrender.shafts import METHODS, render, supersample
 
 _RAY_TOL = 1e-12  # float64: the same directions by two formulas
-_MITSUBA_TOL = 0.02  # the issue's figure: relative RMS of 4x4 block means, all blocks and channels
+_MITSUBA_TOL = 0.02  # the target against Mitsuba: relative RMS of 4x4 block means, all blocks and channels
 _MI_W, _MI_H = 16, 12  # 12 blocks of 4 x 4 pixels: few pixels, many samples each (noise ~1 %)
 _MI_SPP, _MI_REPEATS = 8192, 4  # Mitsuba samples per pixel per repeat; noise from the repeats' spread
 _NOISE_MAX = 0.015  # Mitsuba's relative standard error of the block means (measured 1.2 %; ours at

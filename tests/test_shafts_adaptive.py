@@ -28,7 +28,7 @@ from jaxrender.shafts._equiangular import primary_hits
 from jaxrender.textures import pack_mips
 
 _EXACT = 1e-9  # the same computation, float64 (sums in another order)
-_TARGET = 0.02  # the issue's error target: relative RMS of the in-scattered light
+_TARGET = 0.02  # the interactive frames' 2 % error target: relative RMS of the in-scattered light
 _FD_RTOL = 1e-5  # float64 central differences, h = 1e-6 relative, smooth configuration
 _FD_GRID_RTOL = 1e-4  # the same in grid fog (the volumes' tables add rounding to the differences)
 _EDGE_JUMP = 0.05  # a depth edge: depth off the mean of its two neighbours by more than 5 % (a row or column)

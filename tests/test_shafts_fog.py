@@ -1,7 +1,7 @@
 """Fog with a density grid in every light-shaft method.
 
 Independent references: Mitsuba 3's `gridvolume` (the grid's lookup, value by value), a float64
-numpy brute force of the model written here from the issue's definition (scipy's
+numpy brute force of the model written here from its definition in docs/fog.md (scipy's
 `map_coordinates` for the trilinear grid, midpoint rules for every integral), float64 central
 differences for the gradients, and the uniform-fog renderer (a grid of ones must reproduce it).
 Every test uses one image size, one grid shape and one object list, so each method compiles once
@@ -424,7 +424,7 @@ def test_scene_file_grid_is_read_relative_to_the_file(tmp_path):
 
 # -- sample counts from an error target -------------------------------------------------------------------
 _TARGET = 0.04
-_TARGET_SLACK = 1.25  # the issue's 2.5 % for a 2 % target: the fixed parts' error is not in the estimate
+_TARGET_SLACK = 1.25  # the target's 2.5 % for a 2 % error: the fixed parts' error is not in the estimate
 
 
 def test_target_error_chooses_counts_that_reach_it():

@@ -3,9 +3,9 @@
 inherited), on small sizes. Each test checks that the outputs exist, are readable and are sensible
 (shapes, finite values, the physics they show), not only that the exit code is 0.
 
-The gallery run is the slow one (`--quick`: about 70 s of CPU time, 4.7-6 min of wall time on
-this shared machine at load 10-18; the issue's budget is 3 minutes on CI's 2 cores); it is not
-skipped.
+The gallery run is the slow one (`--quick`, its sections side by side beside the suite's other
+worker: 185 s in a full run on 2 cores of an AMD EPYC with AVX-512, 393 s on one with AVX2 only);
+it is not skipped.
 """
 
 import json
@@ -34,7 +34,7 @@ FLOOR_TOL = 0.15     # m: the lowest point of the performer from the stage floor
 MOCAP = Path(os.environ.get("JAXRENDER_MOCAP", Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"))
 HANG_GUARD_S = 1800  # a hung run fails the test instead of the suite; not a speed assertion
 
-# `sims ripples` / `sims dunes` in float32 over 10,000 steps: the issue's bound on the drift of the
+# `sims ripples` / `sims dunes` in float32 over 10,000 steps: the bound on the drift of the
 # total (sand moves on a fixed-point grid; measured 2.4e-8 and 1.2e-7 at 128x128, <= 1e-8 here).
 SAND_DRIFT_TOL = 1e-6
 # The EM pyramid from `fitting pyramid` (float32) against the same pyramid built in float64 in this
