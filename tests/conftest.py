@@ -50,8 +50,8 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
-# The inner loop (`python -m pytest -m quick -n 2`, three to five minutes on 2 cores from an empty
-# compilation cache, about two once the cache holds its programs; README): every area's kernels
+# The inner loop (`python -m pytest -m quick -n 2`, two to five minutes on 2 cores from an empty
+# compilation cache by the CPU, one to two once the cache holds its programs; README): every area's kernels
 # and file formats against their references, without the end-to-end commands, notebooks, brute-force
 # frames and benchmark runs that make up most of the full suite's time.
 QUICK_MODULES = {
