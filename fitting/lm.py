@@ -339,9 +339,13 @@ def _robust(ratio_cl, w, lights, settings: FitSettings, table: MaterialTable, ac
         theta, ok, steps = carry
         last = i == ROBUST_ROUNDS
         stage = jax.tree_util.tree_map(lambda a, b: jnp.where(last, a, b), appearance, geometry)
-        w_later = jax.vmap(lambda th, r, wg, pr: _robust_weights(th, r, wg, lights, model, pr, ambient=ambient))(
-            theta, ratio_cl, w_geo, prior)
-        weights = jnp.where(last, w, jnp.where(i == 0, w_first, w_later))
+        # the reweighting (a median over the lights per texel) only in the rounds that use it
+        weights = jax.lax.switch(
+            jnp.where(i == 0, 0, jnp.where(last, 2, 1)),
+            (lambda: w_first,
+             lambda: jax.vmap(lambda th, r, wg, pr: _robust_weights(th, r, wg, lights, model, pr, ambient=ambient))(
+                 theta, ratio_cl, w_geo, prior),
+             lambda: w))
         theta_r, ok_r, steps_r = _solve(settings, theta, (ratio_cl, weights, prior), lights, stage, active)
         theta_r, bad = _finite_or(theta_r, theta)
         kept = i >= ROBUST_ROUNDS - 1   # the rounds whose result the fit keeps
