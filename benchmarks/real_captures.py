@@ -51,7 +51,7 @@ import numpy as np
 
 from fitting import FitSettings, Observations, fit_maps, load_capture, merge_capture, write_folder_manifest
 from fitting.crossval import cross_validate
-from fitting.engine import TexelSource, estimate_table, plan_chunks
+from fitting.engine import TexelSource, capture_level, estimate_table, plan_chunks
 from fitting.evaluate import angular_error_deg, lambertian_fit, read_normal_map
 from jaxrender.app.cli.compile_cache import CACHE_ENV
 from jaxrender.app.cli.compile_cache import usable as compile_cache_usable
@@ -145,8 +145,9 @@ def run_object(name: str, work: Path, *, quick: bool, stride: int = 1) -> dict:
         _, cold, cold_cpu = timed(lambda: fit_maps(obs, default, progress=False))
         _, warm, warm_cpu = timed(lambda: fit_maps(obs, default, progress=False))
         source = TexelSource.of_observations(obs)
-        _, table_s, table_cpu = timed(lambda: estimate_table(source, plan_chunks(source.size, default, source.mask),
-                                                                  default, None))
+        plan = plan_chunks(source.size, default, source.mask)
+        _, table_s, table_cpu = timed(lambda: estimate_table(source, plan, default, None,
+                                                             capture_level(source, plan)))
         timed(lambda: fit_maps(obs, plain, progress=False))   # compiles the plain program
         _, plain_warm, plain_cpu = timed(lambda: fit_maps(obs, plain, progress=False))
         command = out["command_default"]

@@ -80,7 +80,7 @@ def _worker_store(store_dir: str, fingerprint_: str) -> ObservationStore:
 
 
 def fit_chunk_task(store_dir: str, fingerprint_: str, partial: str, index: int, settings: FitSettings,
-                   table: MaterialTable | None) -> int | StoreDamaged:
+                   table: MaterialTable | None, level: float) -> int | StoreDamaged:
     """Fit chunk `index` of a store and write it to the checkpoint `partial` (atomically); a Dask task.
     Returns `index`, or the `StoreDamaged` its read raised (returned, not raised: the driver repairs
     the store, and Dask neither retries the task nor logs an error)."""
@@ -91,7 +91,8 @@ def fit_chunk_task(store_dir: str, fingerprint_: str, partial: str, index: int, 
         data = read_chunk(source.read, plan, index)
     except StoreDamaged as damaged:
         return damaged
-    Checkpoint(partial).save(index, fit_chunk(*data, plan, index, source.light_dirs, source.view_dir, settings, table))
+    Checkpoint(partial).save(index, fit_chunk(*data, plan, index, source.light_dirs, source.view_dir, settings, table,
+                                              level))
     return index
 
 
@@ -104,7 +105,7 @@ class DaskChunks:
         self.client = client
 
     def __call__(self, source: TexelSource, plan: ChunkPlan, checkpoint: Checkpoint, settings: FitSettings,
-                 table: MaterialTable | None):
+                 table: MaterialTable | None, level: float):
         import distributed
 
         store, client = source.store, self.client
@@ -112,7 +113,8 @@ class DaskChunks:
 
         def fit_todo(todo: list[int]):
             futures = [client.submit(fit_chunk_task, str(store.path.resolve()), store.fingerprint,
-                                     str(checkpoint.directory.resolve()), i, settings, table, pure=False, retries=2)
+                                     str(checkpoint.directory.resolve()), i, settings, table, level, pure=False,
+                                     retries=2)
                        for i in todo]
             for future in distributed.as_completed(futures):
                 i = future.result()

@@ -10,9 +10,13 @@ atomically). Every chunk is fitted with the same padded shape by the same compil
 wherever and whenever it runs, so the maps are bit-identical on 1 or N devices, in memory or from
 a float32 store, in one process or on a Dask cluster, uninterrupted or resumed after SIGKILL.
 
-A robust fit first estimates the capture's materials from a sample of its texels
-(`estimate_table`; saved beside the chunks as `materials.json`): that `MaterialTable` is the only
-global state, and every chunk gets it.
+Every fit first measures the capture's level on a sample of its texels (`capture_level`): the
+factor that brings their median RMS observation to `REFERENCE_RMS`. The solvers see the
+observations times that factor and the maps are given back in the capture's units, so a fit does
+not depend on the units of its capture (its damping start and tolerances are absolute numbers,
+docs/fitting.md, "The capture's level"). A robust fit then estimates the capture's materials from
+the same sample (`estimate_table`; saved beside the chunks as `materials.json`). The level and that
+`MaterialTable` are the only global state, and every chunk gets both.
 
 Memory: one chunk of observations being fitted and the next being read (`chunk` x L x 16 bytes)
 plus the output maps (60 bytes per texel).
@@ -45,7 +49,7 @@ from .store import ObservationStore
 __all__ = ["TexelSource", "FitResult", "ChunkPlan", "plan_chunks", "read_chunk", "fit_chunk", "fit_source",
            "local_chunks", "estimate_table", "sample_indices", "sample_size", "empty_fit", "observation_summary",
            "TILE", "LANES_TILE", "MIN_VALID", "MATERIAL_MIN_VALID", "SAMPLE_OBSERVATIONS", "SAMPLE_TEXELS",
-           "MATERIALS_FILE"]
+           "MATERIALS_FILE", "REFERENCE_RMS", "capture_level", "in_units"]
 
 # texels per compiled tile program: every device runs whole tiles, so a texel meets the same program
 # on 1 or N devices. A backend that steps solves a tile in lanes (`fitting.lanes`; a large tile keeps
@@ -60,6 +64,10 @@ MATERIAL_MIN_VALID = 8  # valid lights a sampled texel needs to take part in the
 SAMPLE_OBSERVATIONS = 2048 * 96
 SAMPLE_TEXELS = (512, 2048)
 MATERIALS_FILE = "materials.json"   # the robust fit's material table in the checkpoint directory
+# the median RMS observation of a texel that every capture is brought to before its solves: the
+# level of the development captures (DiLiGenT's objects: 0.04-0.09), where the solvers' absolute
+# damping start and tolerances were chosen (docs/fitting.md, "The capture's level")
+REFERENCE_RMS = 0.05
 
 Read = Callable[[int, int], tuple[np.ndarray, np.ndarray]]
 
@@ -208,13 +216,16 @@ def _tile_program(tile: int, settings: FitSettings):
 
 
 def fit_chunk(ratio: np.ndarray, weight: np.ndarray, plan: ChunkPlan, index: int, light_dirs, view_dir,
-              settings: FitSettings, table: MaterialTable | None) -> TexelFit:
+              settings: FitSettings, table: MaterialTable | None, level: float = 1.0) -> TexelFit:
     """Fit chunk `index` of `plan` from its observations (`read_chunk`) over the local devices; a
-    `TexelFit` of flat numpy leaves (the chunk's texels). `table`: the robust method's materials.
+    `TexelFit` of flat numpy leaves (the chunk's texels), in the observations' units. `table`: the
+    robust method's materials; `level`: the capture's (`capture_level`), the factor the solvers see
+    the observations multiplied by (the table is in those units).
 
     Float32 observations are fitted by a float32 program even where a notebook or test switched on
     x64 (optimistix's damping constants would otherwise turn into float64 and its structure check fails)."""
     count = plan.counts[index]
+    ratio = np.asarray(ratio) * np.asarray(level, np.asarray(ratio).dtype)
     if count != plan.padded:
         idx = np.minimum(np.arange(plan.padded), count - 1)  # pad with the last texel
         ratio, weight = ratio[idx], weight[idx]
@@ -240,7 +251,18 @@ def fit_chunk(ratio: np.ndarray, weight: np.ndarray, plan: ChunkPlan, index: int
                 table), place)
             outs.append(fn(r, w, active, dirs, view, materials))
     out = jax.tree.map(lambda *shares: np.concatenate([np.asarray(x) for x in shares]), *outs)
-    return jax.tree.map(lambda v: v[:count], out)
+    return in_units(jax.tree.map(lambda v: v[:count], out), 1.0 / level)
+
+
+def in_units(fit: TexelFit, factor: float) -> TexelFit:
+    """`fit` of observations multiplied by `factor`: the reflectances and residuals scale with the
+    observations (the costs with their square); the geometry does not."""
+    if factor == 1.0:
+        return fit
+    dtype = np.asarray(fit.rho_d).dtype
+    k = np.asarray(factor, dtype)
+    return dataclasses.replace(fit, rho_d=fit.rho_d * k, rho_s=fit.rho_s * k, residual=fit.residual * k,
+                               cost=fit.cost * k * k)
 
 
 def empty_fit(n: int) -> TexelFit:
@@ -287,23 +309,45 @@ def sample_indices(valid_texels: np.ndarray, count: int) -> np.ndarray:
     return valid_texels[pick]
 
 
+def _sample(source: TexelSource, plan: ChunkPlan) -> np.ndarray:
+    """The global pass's texels: up to `sample_size` of the plan's texels with at least
+    MATERIAL_MIN_VALID valid observations, evenly strided."""
+    n_valid = np.asarray(source.counts.n_valid).reshape(-1)
+    return sample_indices(plan.texels[n_valid[plan.texels] >= MATERIAL_MIN_VALID],
+                          sample_size(np.shape(source.light_dirs)[0]))
+
+
+def capture_level(source: TexelSource, plan: ChunkPlan) -> float:
+    """The factor that brings the median, over the sampled texels, of a texel's RMS valid
+    observation to REFERENCE_RMS (1 where nothing is sampled or the sample is black)."""
+    texels = _sample(source, plan)
+    if not texels.size:
+        return 1.0
+    ratio, weight = read_texels(source.read, texels, window=max(plan.padded, 1))
+    valid = (np.asarray(weight) > 0) & np.all(np.isfinite(ratio), axis=-1)
+    sq = np.where(valid[..., None], np.asarray(ratio, np.float64), 0.0) ** 2
+    rms = np.sqrt(sq.sum(axis=(1, 2)) / np.maximum(3 * valid.sum(axis=1), 1))
+    median = float(np.median(rms[valid.any(axis=1)])) if valid.any() else 0.0
+    if not np.isfinite(median) or median <= 0:
+        return 1.0
+    return float(np.float32(REFERENCE_RMS / median))
+
+
 def estimate_table(source: TexelSource, plan: ChunkPlan, settings: FitSettings,
-                   checkpoint: Checkpoint | None) -> MaterialTable:
-    """The global pass of a robust fit: the material table of a sample of the plan's texels with
-    at least MATERIAL_MIN_VALID valid observations (`fitting.materials`; the sample fitted by the
-    chunks' compiled program, with a table of no priors). Saved in the checkpoint and reloaded from
-    there on a resumed fit."""
+                   checkpoint: Checkpoint | None, level: float = 1.0) -> MaterialTable:
+    """The global pass of a robust fit: the material table of the sample (`_sample`; fitted by the
+    chunks' compiled program, with a table of no priors), in the units of the observations times
+    `level` (what the solvers see). Saved in the checkpoint and reloaded from there on a resumed fit."""
     saved = checkpoint.directory / MATERIALS_FILE if checkpoint is not None else None
     if saved is not None and saved.is_file():
         try:
             return MaterialTable.from_json(json.loads(saved.read_text()))
         except (OSError, ValueError, KeyError, TypeError):
             pass   # unreadable: estimate again
-    n_valid = np.asarray(source.counts.n_valid).reshape(-1)
-    texels = sample_indices(plan.texels[n_valid[plan.texels] >= MATERIAL_MIN_VALID],
-                            sample_size(np.shape(source.light_dirs)[0]))
+    texels = _sample(source, plan)
     if texels.size:
         ratio, weight = read_texels(source.read, texels, window=max(plan.padded, 1))
+        ratio = ratio * np.asarray(level, ratio.dtype)
         n = int(texels.size)
         starts = tuple(range(0, n, plan.padded))
         sample = ChunkPlan((1, n), np.arange(n), starts, tuple(min(plan.padded, n - s) for s in starts), plan.tile,
@@ -325,7 +369,7 @@ Chunks = Callable[[list[int]], Iterable[tuple[int, TexelFit]]]
 
 
 def local_chunks(source: TexelSource, plan: ChunkPlan, checkpoint: Checkpoint | None, settings: FitSettings,
-                 table: MaterialTable | None) -> Chunks:
+                 table: MaterialTable | None, level: float) -> Chunks:
     """The chunks fitted in this process: each read (the next one by a thread meanwhile), fitted
     and saved in turn; yields (index, fit) as each is done."""
 
@@ -337,7 +381,7 @@ def local_chunks(source: TexelSource, plan: ChunkPlan, checkpoint: Checkpoint | 
                 data = future.result()
                 if k + 1 < len(todo):
                     future = reader.submit(read_chunk, source.read, plan, todo[k + 1])
-                fit = fit_chunk(*data, plan, i, source.light_dirs, source.view_dir, settings, table)
+                fit = fit_chunk(*data, plan, i, source.light_dirs, source.view_dir, settings, table, level)
                 if checkpoint is not None:
                     checkpoint.save(i, fit)
                 yield i, fit
@@ -351,7 +395,8 @@ class FitResult(NamedTuple):
     """A source's fit: what the BTF writer writes (`fitting.writer.write_fit`)."""
 
     maps: TexelFit                 # `H W ...` maps (`empty_fit` outside the mask)
-    table: MaterialTable | None    # the robust method's materials (None: plain)
+    table: MaterialTable | None    # the robust method's materials (None: plain), at the capture's level
+    level: float                   # the factor the solvers saw the observations multiplied by (`capture_level`)
     counts: ObservationCounts      # the source's light counts
     mask: np.ndarray | None        # the texels fitted (None: all)
     observations: dict             # `observation_summary` of the counts
@@ -365,16 +410,17 @@ def fit_source(source: TexelSource, settings: FitSettings, *, partial_dir: str |
 
     `partial_dir`: checkpoint finished chunks there and reuse those already present (a directory
     written for other inputs or settings is emptied first). `executor(source, plan, checkpoint,
-    settings, table)` gives the function that fits a list of chunks (`local_chunks`, or
+    settings, table, level)` gives the function that fits a list of chunks (`local_chunks`, or
     `fitting.cluster.DaskChunks`). `progress`: None = a tqdm bar on a terminal only.
     """
     summary = observation_summary(source.counts, source.mask, source.name)   # before any work
+    plan = plan_chunks(source.size, settings, source.mask)
+    level = capture_level(source, plan)
     checkpoint = None
     if partial_dir is not None:
-        checkpoint = Checkpoint(partial_dir).prepare(fingerprint(settings.key(), *source.identity))
-    plan = plan_chunks(source.size, settings, source.mask)
-    table = estimate_table(source, plan, settings, checkpoint) if settings.robust else None
-    fit_todo = executor(source, plan, checkpoint, settings, table)
+        checkpoint = Checkpoint(partial_dir).prepare(fingerprint({**settings.key(), "level": level}, *source.identity))
+    table = estimate_table(source, plan, settings, checkpoint, level) if settings.robust else None
+    fit_todo = executor(source, plan, checkpoint, settings, table, level)
     results = [checkpoint.load(i, count) if checkpoint is not None else None for i, count in enumerate(plan.counts)]
     todo = [i for i, r in enumerate(results) if r is None]
     bar = _progress_bar(plan.n_fitted, progress)
@@ -387,7 +433,7 @@ def fit_source(source: TexelSource, settings: FitSettings, *, partial_dir: str |
                 on_chunk(i)
     finally:
         bar.close()
-    return FitResult(_assemble_maps(results, plan), table, source.counts, source.mask, summary)
+    return FitResult(_assemble_maps(results, plan), table, level, source.counts, source.mask, summary)
 
 
 def observation_summary(counts: ObservationCounts, mask: np.ndarray | None, source) -> dict:

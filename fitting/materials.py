@@ -88,12 +88,13 @@ class MaterialTable(eqx.Module):
     def from_json(cls, data: dict) -> "MaterialTable":
         return cls(*(jnp.asarray(np.asarray(data[k], np.int32 if k == "sample" else np.float32)) for k in _FIELDS))
 
-    def describe(self) -> dict:
-        """The table's figures for `btf.json`: rows in use, their shares, slopes, rho_s, the noise."""
+    def describe(self, level: float = 1.0) -> dict:
+        """The table's figures for `btf.json`: rows in use, their shares, slopes, rho_s (in the
+        capture's units: the table's divided by the capture's `level`), the noise."""
         used = np.flatnonzero(np.isfinite(np.asarray(self.log_share)))
         return {"materials": int(used.size), "shares": [float(np.exp(self.log_share[j])) for j in used],
                 "sigma": [[round(float(x), 4) for x in SIGMA_FLOOR + np.exp(np.asarray(self.s[j]))] for j in used],
-                "rho_s": [[round(float(x), 4) for x in np.asarray(self.rho_s[j])] for j in used],
+                "rho_s": [[round(float(x) / level, 4) for x in np.asarray(self.rho_s[j])] for j in used],
                 "noise": float(self.noise), "sample": int(self.sample)}
 
 

@@ -63,8 +63,9 @@ def write_fit(btf_dir: Path, result: FitResult, settings: FitSettings, *, pyrami
            "seconds": round(seconds, 3), "observations": result.observations}
     if cpu_seconds is not None:  # this process's CPU time (robust to a shared machine's load)
         fit["cpu_seconds"] = round(cpu_seconds, 3)
+    fit["level"] = result.level   # the factor the solvers saw the observations multiplied by
     if table is not None:
-        fit["materials"] = table.describe()
+        fit["materials"] = table.describe(result.level)
     info = {"fit": fit, **(meta or {})}
     write_btf_previews(btf_dir, level0)
     level0 = complete_level(level0, level0=True)
