@@ -395,7 +395,9 @@ def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_
     `materials` (None: a table without priors, `fitting.materials.no_materials`). `active` (an
     integer, may be traced; None: every texel): only the first `active` texels are solved, the
     rest of the batch is padding whose results are meaningless (the stepping backends, solving in
-    lanes, spend no step on them).
+    lanes, spend no step on them). The observations are fitted as given: the engine first brings a
+    capture to one level (`fitting.engine.capture_level`, docs/fitting.md), as a caller of this
+    function should where its captures' units vary.
 
     A texel's fit is bit-identical in any batch, at any place: the lights are padded with
     weight-0 observations and the batch with copies of its last texel to multiples of `_ALIGN`,
