@@ -41,7 +41,7 @@ from jaxrender.io import InputError, atomic_path
 
 from .checkpoint import Checkpoint, fingerprint
 from .hdr import ObservationCounts, Observations
-from .lm import COMPILER_OPTIONS, STEPPING, TexelFit, fit_batch
+from .lm import STEPPING, TexelFit, fit_texels
 from .materials import MaterialTable, estimate_materials, no_materials
 from .settings import FitSettings
 from .store import ObservationStore
@@ -203,7 +203,7 @@ def _tile_program(tile: int, settings: FitSettings):
     def fn(ratio, weight, active, light_dirs, view_dir, materials):
         def fit(tile_data):
             r, w, n = tile_data
-            return fit_batch(r, w, light_dirs, view_dir, materials, n, settings=settings)
+            return fit_texels(r, w, light_dirs, view_dir, settings, materials=materials, active=n)
 
         def skip(tile_data):   # a tile of padding only: nothing to fit
             return jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(fit, tile_data))
@@ -212,7 +212,7 @@ def _tile_program(tile: int, settings: FitSettings):
                           (ratio, weight, active))
         return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
-    return jax.jit(fn, compiler_options=COMPILER_OPTIONS)
+    return jax.jit(fn)
 
 
 def fit_chunk(ratio: np.ndarray, weight: np.ndarray, plan: ChunkPlan, index: int, light_dirs, view_dir,

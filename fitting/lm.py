@@ -8,6 +8,8 @@ the starts: docs/fitting.md, "The per-texel fit".
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -40,7 +42,7 @@ from .settings import FitSettings
 
 __all__ = ["TexelFit", "fit_texels", "fit_texel", "initial_theta", "theta_to_geometry", "geometry_to_theta", "basis",
            "project_rho", "texel_cost", "texel_residuals", "default_tolerances", "BACKENDS", "STEPPING", "S_MIN",
-           "S_MAX", "SIGMA_STARTS", "ROBUST_ROUNDS", "COMPILER_OPTIONS", "fit_batch"]
+           "S_MAX", "SIGMA_STARTS", "ROBUST_ROUNDS"]
 
 BACKENDS = {"optimistix": lm_optimistix.solve, "jaxopt": lm_jaxopt.solve, "native": lm_native.solve}
 # backends that step: a batch is solved in lanes (`fitting.lanes`); the others texel by texel
@@ -48,10 +50,6 @@ STEPPING = {"native": lm_native.Steps, "optimistix": lm_optimistix.Steps}
 SIGMA_STARTS = (0.03, 0.1, 0.3)
 ROBUST_ROUNDS = 2   # reweighted geometry solves of the robust method, before its appearance solve
 _ALIGN = 16   # float32 lanes of a 64-byte vector
-# XLA options of the programs that fit texels (`fit_texels`'s and `fitting.engine`'s tile program):
-# XLA's CPU backend compiles them with its older emitters in about 60 % of the time, and they run as
-# fast; the renderers do not get them (slower there). Measured: docs/fitting.md, "Solving in lanes".
-COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 
 class TexelFit(eqx.Module):
@@ -406,13 +404,8 @@ def fit_texels(ratio: Float[Array, "T L 3"], weight: Float[Array, "T L"], light_
     so every texel's rows start equally aligned and every texel falls in a full vector lane
     (XLA:CPU's remainder loops use scalar exp/log, which round differently), and a texel's solve
     runs the same operations whichever lane it takes (`fitting.lanes`).
-
-    Called with traced arguments (inside a caller's `jax.jit`, `vmap`, ...) it is compiled with
-    the caller's program and XLA options, not `COMPILER_OPTIONS`: the same fit, rounded apart.
     """
-    args = (ratio, weight, light_dirs, view_dir, materials, active)
-    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
-    return (_fit_texels_traced if traced else _fit_texels)(*args, settings=settings.program())
+    return _fit_texels(ratio, weight, light_dirs, view_dir, materials, active, settings=settings.program())
 
 
 def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs: Float[Array, "L 3"],
@@ -424,10 +417,8 @@ def fit_texel(ratio: Float[Array, "L 3"], weight: Float[Array, " L"], light_dirs
     return jax.tree_util.tree_map(lambda x: x[0], out)
 
 
-def fit_batch(ratio, weight, light_dirs, view_dir, materials, active, *, settings: FitSettings) -> TexelFit:
-    """`fit_texels` unjitted (`settings` as `FitSettings.program` gives them), for a program that jits
-    it inside its own (`fitting.engine`'s tile program): XLA takes compiler options from the
-    outermost jit only."""
+@functools.partial(jax.jit, static_argnames="settings")
+def _fit_texels(ratio, weight, light_dirs, view_dir, materials, active, *, settings: FitSettings) -> TexelFit:
     ratio = jnp.asarray(ratio)
     dt = ratio.dtype
     weight, light_dirs, view_dir = (jnp.asarray(x, dt) for x in (weight, light_dirs, view_dir))
@@ -454,7 +445,3 @@ def fit_batch(ratio, weight, light_dirs, view_dir, materials, active, *, setting
                                                                     nv))(theta, ratio_cl, w, prior, row, ok, steps,
                                                                          n_valid)
     return jax.tree_util.tree_map(lambda x: x[:n_texels], out) if pad_t else out
-
-
-_fit_texels = jax.jit(fit_batch, static_argnames="settings", compiler_options=COMPILER_OPTIONS)
-_fit_texels_traced = jax.jit(fit_batch, static_argnames="settings")   # inside a caller's jit: its options

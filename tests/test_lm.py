@@ -115,24 +115,6 @@ def _angle_deg(a, b):
     return np.degrees(np.arccos(np.clip(np.sum(np.asarray(a) * np.asarray(b), -1), -1, 1)))
 
 
-# fit_texels inside a caller's jit against the same call at top level: float64, rounding apart
-INNER_JIT_DEG = 1e-3
-INNER_JIT_SIGMA_REL = 1e-5
-
-
-def test_fit_texels_inside_a_callers_jit(data, fit_optx):
-    """Traced, fit_texels compiles into the caller's program with the caller's XLA options (XLA takes
-    them from the outermost jit only, so the fit's own `COMPILER_OPTIONS` cannot apply there): it
-    runs, and fits what the top-level call fits."""
-    _, ratio, weight = data
-    inner = jax.jit(lambda r, w: fit_texels(r, w, LIGHTS, VIEW, PLAIN))(ratio, weight)
-    regular = slice(0, N_REGULAR)
-    assert _angle_deg(inner.normal[regular], fit_optx.normal[regular]).max() <= INNER_JIT_DEG
-    for field in ("sigma_x", "sigma_y"):
-        np.testing.assert_allclose(getattr(inner, field)[regular], getattr(fit_optx, field)[regular],
-                                   rtol=INNER_JIT_SIGMA_REL)
-
-
 def test_basis_is_the_brdf():
     """rho_d a + rho_s b (the fit's linear decomposition) equals jaxrender.brdf.reflectance."""
     truth = _truth()
