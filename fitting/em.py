@@ -638,16 +638,16 @@ def em_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations: in
     Inside a chunk, blocks of 2048 texels are processed two at a time, and inside them blocks of
     256 texels run their EM loops, each until its own slowest texel has converged (`_em_blocks`).
     Splitting into chunks (already in the kernel's structure-of-arrays layout) and merging them
-    are one jitted call each and stay on the device; the one value read back per level is
-    whether any child has a second lobe (it picks the cheaper kernel for one-lobe levels).
+    are numpy (compiled, they would be compiled again for every level's shape); whether any child
+    has a second lobe picks the cheaper kernel for one-lobe levels. The level comes back in numpy.
     `fixed`: every chunk of `chunk` texels (a pyramid built once, in a fresh process: two kernels to
     compile, one-lobe and two-lobe, instead of one per chunk size its levels would pick; measured on
     a 231 x 385 level 0 and its 8 levels: 12.4 s CPU with compilation instead of 18.9 s).
     """
-    level = jax.tree.map(lambda a: a if isinstance(a, jax.Array) else jnp.asarray(a), level)
+    level = jax.tree.map(np.asarray, level)
     h, w = level.weight.shape
     hh, ww = -(-h // 2), -(-w // 2)
-    one_lobe = not bool(np.any(np.asarray(level.weight)))   # e.g. level 0 of a fit: the cheaper kernel
+    one_lobe = not bool(np.any(level.weight))   # e.g. level 0 of a fit: the cheaper kernel
     size = chunk if fixed else _chunk_size(hh * ww, chunk)
     ahead = _AHEAD.get(_kernel_key(order, iterations, tol, size, level.weight.dtype))
     if ahead is not None:

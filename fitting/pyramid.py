@@ -19,7 +19,6 @@ from pathlib import Path
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
@@ -53,11 +52,12 @@ def banded_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations
     so every texel meets the same kernel call: the level is bit-identical to `em_downsample`'s.
     Levels with a second lobe somewhere, small levels, and widths that allow no such bands are
     downsampled in one piece (`em_downsample` picks its kernel from the whole level)."""
+    level = jax.tree.map(np.asarray, level)   # cut and joined in numpy (`em_downsample` splits in numpy)
     h, w = level.weight.shape
     hh, ww = -(-h // 2), -(-w // 2)
     step = chunk // math.gcd(chunk, ww)   # output rows of a whole number of chunks
     rows = max(step, band_texels // ww // step * step)
-    if hh < 2 * rows or bool(jnp.any(level.weight)):
+    if hh < 2 * rows or bool(np.any(np.asarray(level.weight))):
         return em_downsample(level, order=order, iterations=iterations, chunk=chunk, fixed=fixed)
     starts = list(range(0, hh - rows + 1, rows))   # the last band runs to the end (rows .. 2 rows - 1)
     outs, infos = [], []
@@ -68,23 +68,26 @@ def banded_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations
         jax.block_until_ready((out, info))   # one band's buffers at a time
         outs.append(out)
         infos.append(info)
-    return (jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=0), *outs),
-            jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=0), *infos))
+    return (jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *outs),
+            jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *infos))
 
 
-@jax.jit
 def masked_average(coarse: BTFTexel, mask: Float[Array, "H W"]) -> tuple[BTFTexel, Float[Array, "h w"]]:
-    """(`coarse` as the average over its children inside `mask` only, the coarse mask).
+    """(`coarse` as the average over its children inside `mask` only, the coarse mask), in numpy
+    (every level has its own shape: compiled, each would be compiled once more).
 
     Texels outside a capture's mask hold rho = 0, so a coarse texel's rho_d (the children's mean)
     and its lobes' rho_s (the children's energy / 4) are those of its inside children times the
     inside fraction f (`downsample2` of the mask, same padding): divided by f they are the inside
     children's own; the lobes' shape is unchanged (outside children carry no energy)."""
+    coarse = jax.tree.map(np.asarray, coarse)
+    mask = np.asarray(mask, coarse.rho_d.dtype)
     frac = downsample2(mask[..., None])[..., 0]
-    scale = jnp.where(frac > 0, 1.0 / jnp.where(frac > 0, frac, 1.0), 0.0)[..., None]
+    inside = frac > 0
+    scale = np.where(inside, 1 / np.where(inside, frac, 1), 0).astype(mask.dtype)[..., None]
     scaled = eqx.tree_at(lambda t: (t.rho_d, t.lobe0.rho_s, t.lobe1.rho_s), coarse,
                          (coarse.rho_d * scale, coarse.lobe0.rho_s * scale, coarse.lobe1.rho_s * scale))
-    return scaled, (frac > 0).astype(mask.dtype)
+    return scaled, inside.astype(mask.dtype)
 
 
 def compile_pyramid_ahead() -> threading.Thread:
@@ -104,16 +107,15 @@ def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = 
     current = level0
     for _ in range(1, count):  # a handful of levels: each one is a vmapped kernel call
         current, info = banded_downsample(current, order=order, iterations=iterations, chunk=EM_CHUNK, fixed=True)
+        current = jax.tree.map(np.asarray, current)   # numpy from here: the levels' shapes all differ
         if mask is not None:
-            current, mask = masked_average(current, jnp.asarray(mask, current.rho_d.dtype))
+            current, mask = masked_average(current, mask)
             masks.append(mask)
         out.append(current)
         infos.append(info)
         if progress is not None:
             progress(1)
-    # statistics once every level is dispatched, in one read-back (each level reads back only
-    # `em_downsample`'s one-lobe check)
-    summary = np.asarray(_level_summary(infos)) if infos else []
+    summary = _level_summary(infos)
     stats = [{"size": list(level.weight.shape), "two_lobe_fraction": float(two),
               "max_iterations": int(iterations), "converged_fraction": float(converged)}
              for level, (two, iterations, converged) in zip(out, summary)]
@@ -122,12 +124,10 @@ def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = 
     return out, stats
 
 
-@jax.jit
-def _level_summary(infos):
+def _level_summary(infos) -> np.ndarray:
     """Per level: fraction of two-lobe texels, most EM iterations, fraction converged (`L 3`)."""
-    return jnp.stack([jnp.stack([jnp.mean(info.two_lobes.astype(jnp.float32)),
-                                 jnp.max(info.iterations).astype(jnp.float32),
-                                 jnp.mean(info.converged.astype(jnp.float32))]) for info in infos])
+    return np.array([[np.mean(np.asarray(info.two_lobes), dtype=np.float64), np.max(np.asarray(info.iterations)),
+                      np.mean(np.asarray(info.converged), dtype=np.float64)] for info in infos]).reshape(-1, 3)
 
 
 def pyramid_channels(level0: dict[str, np.ndarray], *, levels: int | None = None, order: int = DEFAULT_ORDER,

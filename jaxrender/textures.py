@@ -9,6 +9,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 __all__ = ["bilinear", "nearest", "mip_pyramid", "trilinear", "quantize", "downsample2", "PackedMips", "pack_mips"]
@@ -55,10 +56,12 @@ def nearest(texture: Float[Array, "H W C"], uv: Float[ArrayLike, "... 2"], *,
 
 
 def downsample2(texture: Float[Array, "H W C"]) -> Float[Array, "h w C"]:
-    """Box-filter to ceil(H/2) x ceil(W/2); an odd last row/column is averaged with its copy."""
+    """Box-filter to ceil(H/2) x ceil(W/2); an odd last row/column is averaged with its copy.
+    A numpy array is filtered in numpy (no compilation for each new shape: a pyramid's levels)."""
+    xp = np if isinstance(texture, np.ndarray) else jnp
     h, w = texture.shape[0], texture.shape[1]
     pad = ((0, h % 2), (0, w % 2)) + ((0, 0),) * (texture.ndim - 2)
-    t = jnp.pad(texture, pad, mode="edge")
+    t = xp.pad(texture, pad, mode="edge")
     return 0.25 * (t[0::2, 0::2] + t[1::2, 0::2] + t[0::2, 1::2] + t[1::2, 1::2])
 
 
