@@ -57,7 +57,7 @@ def banded_downsample(level: BTFTexel, *, order: int = DEFAULT_ORDER, iterations
     hh, ww = -(-h // 2), -(-w // 2)
     step = chunk // math.gcd(chunk, ww)   # output rows of a whole number of chunks
     rows = max(step, band_texels // ww // step * step)
-    if hh < 2 * rows or bool(np.any(np.asarray(level.weight))):
+    if hh < 2 * rows or bool(np.any(level.weight)):
         return em_downsample(level, order=order, iterations=iterations, chunk=chunk, fixed=fixed)
     starts = list(range(0, hh - rows + 1, rows))   # the last band runs to the end (rows .. 2 rows - 1)
     outs, infos = [], []
