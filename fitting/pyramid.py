@@ -107,7 +107,6 @@ def pyramid_levels(level0: BTFTexel, *, levels: int | None = None, order: int = 
     current = level0
     for _ in range(1, count):  # a handful of levels: each one is a vmapped kernel call
         current, info = banded_downsample(current, order=order, iterations=iterations, chunk=EM_CHUNK, fixed=True)
-        current = jax.tree.map(np.asarray, current)   # numpy from here: the levels' shapes all differ
         if mask is not None:
             current, mask = masked_average(current, mask)
             masks.append(mask)
